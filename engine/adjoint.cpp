@@ -1,0 +1,136 @@
+// Adjoint integrators: path replay backpropagation (prb, Vicini et al. 2021) and radiative
+// backpropagation (rb, Nimier-David et al. 2020). Both run the primal path loop of engine/path.h
+// with an observer that receives every contribution the estimator makes and calls the derivative
+// shaders; nothing is stored per sample or per vertex.
+#include <tbb/enumerable_thread_specific.h>
+
+#include <atomic>
+
+#include "engine/path.h"
+#include "engine/progress.h"
+#include "engine/render.h"
+
+namespace bl {
+
+namespace {
+
+// Path replay. The estimator is a sum of contributions, each a product of the factors met along
+// the path. Given δ (the adjoint of this sample's radiance):
+//  - emission: contribution = (β w) Le → δ·β·w flows into Le;
+//  - NEE: contribution = β f Le w / p → δ·β·Le·w/p into f, δ·β·f·w/p into Le;
+//  - BSDF sample at a vertex: every later contribution carries the factor f/pdf, so
+//    ∂(rest)/∂f = rest / f with rest = L − (radiance so far) (the "radiance to come").
+// Sampling decisions (directions, pdfs, MIS weights, roulette) are constants, matching the
+// detached convention of the primal loop.
+struct ReplayObserver {
+  static constexpr bool kActive = true;
+  const Scene& scene;
+  GradientAccumulator& grads;
+  Vec3f delta;           // ∂loss/∂(this sample's radiance)
+  Vec3f total_radiance;  // this sample's primal estimate, from the first run of the same path
+
+  void emission(const EmissionRef& e, const Vec3f& weight, const Vec3f&) {
+    emitter_backprop(scene, e, delta * weight, grads);
+  }
+  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
+           const Vec3f& emitter_weight, const Vec3f&) {
+    if (v.material->wants_grad(grads)) v.material->backprop(scene.params, v.uv, v.wo, wi, delta * bsdf_weight, grads);
+    emitter_backprop(scene, e, delta * emitter_weight, grads);
+  }
+  void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
+               const Vec3f& radiance_so_far, int, const Ray&) {
+    if (!v.material->wants_grad(grads)) return;
+    const Vec3f radiance_to_come = total_radiance - radiance_so_far;
+    Vec3f adjoint;
+    for (int c = 0; c < 3; ++c) adjoint[c] = f[c] != 0.f ? delta[c] * radiance_to_come[c] / f[c] : 0.f;
+    v.material->backprop(scene.params, v.uv, v.wo, wi, adjoint, grads);
+  }
+};
+
+// Radiative backpropagation: at each BSDF sample the incident radiance the derivative needs is
+// estimated by an independent path (its own random numbers), so the cost is quadratic in depth.
+// Emission and NEE terms are local and handled exactly as in replay.
+struct RadiativeObserver {
+  static constexpr bool kActive = true;
+  const Scene& scene;
+  GradientAccumulator& grads;
+  Vec3f delta;
+  uint64_t seed, pixel, sample;
+  ReplayObserver local{scene, grads, delta, Vec3f(0.f)};
+
+  void emission(const EmissionRef& e, const Vec3f& w, const Vec3f& c) { local.emission(e, w, c); }
+  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bw, const Vec3f& ew, const Vec3f& c) {
+    local.nee(v, wi, e, bw, ew, c);
+  }
+  void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f&, float pdf, float q, const Vec3f& beta_before,
+               const Vec3f&, int vertex, const Ray& next) {
+    if (!v.material->wants_grad(grads)) return;
+    PathSampler independent(mix64(seed ^ 0x5eed0fadull) + uint64_t(vertex), pixel, sample);
+    NoObserver none;
+    Vec3f incident = trace_path<float>(scene, PathStart{next, vertex + 1, pdf}, independent, none);
+    Vec3f adjoint = delta * beta_before * incident / (pdf * q);
+    v.material->backprop(scene.params, v.uv, v.wo, wi, adjoint, grads);
+  }
+};
+
+}  // namespace
+
+PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, const PixelAdjoint& adjoint,
+                   Image* image_out) {
+  const Camera& cam = scene.cameras.at(size_t(o.camera));
+  if (image_out) *image_out = Image(cam.width, cam.height, 3);
+  GradientSink sink(scene.params);
+  // Per-thread scratch for one pixel's sample radiances (reused; never allocated per sample).
+  tbb::enumerable_thread_specific<std::vector<Vec3f>> scratch([&] { return std::vector<Vec3f>(size_t(o.spp)); });
+  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb", uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp),
+                    "spp", o.progress);
+  std::atomic<uint64_t> rays{0};
+  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
+    const uint64_t rays_before = Geometry::thread_ray_count();
+    GradientAccumulator& grads = sink.local();
+    std::vector<Vec3f>& radiance = scratch.local();
+    NoObserver none;
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x) {
+        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+        auto start_of = [&](const PathSampler& sampler) {
+          return PathStart{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY))};
+        };
+        // 1. Primal estimates of this pixel's samples.
+        Vec3f sum(0.f);
+        for (int s = 0; s < o.spp; ++s) {
+          PathSampler sampler(o.seed, pixel, uint64_t(s));
+          radiance[size_t(s)] = trace_path<float>(scene, start_of(sampler), sampler, none);
+          sum += radiance[size_t(s)];
+        }
+        const Vec3f value = sum / float(o.spp);
+        if (image_out)
+          for (int c = 0; c < 3; ++c) image_out->at(x, y, c) = value[c];
+        // 2. δ per sample: the film's transpose (box filter, mean over spp).
+        const Vec3f delta = adjoint(size_t(pixel), value) / float(o.spp);
+        if (is_zero(delta)) continue;
+        // 3. Transport δ back through the scene.
+        for (int s = 0; s < o.spp; ++s) {
+          PathSampler sampler(o.seed, pixel, uint64_t(s));
+          if (method == AdjointMethod::Prb) {
+            ReplayObserver replay{scene, grads, delta, radiance[size_t(s)]};
+            trace_path<float>(scene, start_of(sampler), sampler, replay);
+          } else {
+            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s)};
+            trace_path<float>(scene, start_of(sampler), sampler, rb);
+          }
+        }
+      }
+    rays += Geometry::thread_ray_count() - rays_before;
+    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
+  });
+  progress.finish();
+  sink.reduce();
+  PassStats stats;
+  stats.seconds = progress.elapsed();
+  stats.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
+  stats.rays = rays.load();
+  return stats;
+}
+
+}  // namespace bl

@@ -1,0 +1,199 @@
+#include "engine/gradient.h"
+
+#include <tbb/combinable.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <random>
+
+#include <nlohmann/json.hpp>
+
+#include "engine/errors.h"
+#include "engine/taped.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+GradientMethod parse_method(const std::string& name) {
+  if (name == "prb") return GradientMethod::Prb;
+  if (name == "rb") return GradientMethod::Rb;
+  if (name == "taped") return GradientMethod::Taped;
+  throw InputError("unknown method '" + name + "' (expected prb, rb or taped)");
+}
+
+const char* method_name(GradientMethod m) {
+  switch (m) {
+    case GradientMethod::Prb: return "prb";
+    case GradientMethod::Rb: return "rb";
+    case GradientMethod::Taped: return "taped";
+  }
+  return "?";
+}
+
+namespace {
+Vec3f pixel_of(const Image& img, size_t pixel) {
+  return {img.data[pixel * 3], img.data[pixel * 3 + 1], img.data[pixel * 3 + 2]};
+}
+double functional(const Image& a, const Image& img) {
+  double f = 0;
+  for (size_t i = 0; i < img.data.size(); ++i) f += double(a.data[i]) * double(img.data[i]);
+  return f;
+}
+}  // namespace
+
+GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
+  scene.params.zero_grad();
+  GradientResult result;
+  const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
+  const double values = double(cam.width) * double(cam.height) * 3.0;
+  if (rq.method == GradientMethod::Taped) return taped_gradient(scene, rq);
+  const AdjointMethod method = rq.method == GradientMethod::Prb ? AdjointMethod::Prb : AdjointMethod::Rb;
+  PassOptions adj = rq.pass;
+  adj.seed = rq.adjoint_seed;
+
+  if (rq.adjoint_image) {
+    const Image& a = *rq.adjoint_image;
+    if (rq.adjoint_seed == rq.pass.seed) {
+      PassStats s = backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }, &result.image);
+      result.adjoint_seconds = s.seconds;
+    } else {
+      PassStats ps;
+      result.image = render(scene, rq.pass, &ps);
+      result.primal_seconds = ps.seconds;
+      result.adjoint_seconds = backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }).seconds;
+    }
+    result.loss = functional(a, result.image);
+    return result;
+  }
+
+  if (!rq.target) throw InputError("grad needs --target or --adjoint-image");
+  const Image& t = *rq.target;
+  if (rq.adjoint_seed == rq.pass.seed) {
+    // Fused: the loss gradient of a pixel is known as soon as the pixel is rendered.
+    tbb::combinable<double> loss_sum([] { return 0.0; });
+    PassStats s = backward(
+        scene, adj, method,
+        [&](size_t p, const Vec3f& value) {
+          Vec3f g;
+          loss_sum.local() += loss_pixel(rq.loss, value, pixel_of(t, p), values, &g);
+          return g;
+        },
+        &result.image);
+    result.adjoint_seconds = s.seconds;
+    // Sum in pixel order, so the reported loss does not depend on thread scheduling.
+    result.loss = compute_loss(rq.loss, result.image, t).value;
+    (void)loss_sum;
+  } else {
+    PassStats ps;
+    result.image = render(scene, rq.pass, &ps);
+    result.primal_seconds = ps.seconds;
+    LossResult lr = compute_loss(rq.loss, result.image, t);
+    result.loss = lr.value;
+    result.adjoint_seconds =
+        backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(lr.adjoint, p); }).seconds;
+  }
+  return result;
+}
+
+std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
+                                        int directions, double eps, uint64_t direction_seed) {
+  int h = scene.params.find(name);
+  if (h < 0) throw InputError("unknown parameter '" + name + "' (see `backlight params`)");
+  scene.params.require_grad({name});
+  GradientRequest quiet = rq;
+  quiet.pass.progress = false;
+  compute_gradient(scene, quiet);
+  const std::vector<float> gradient = scene.params[h].grad;
+  const std::vector<float> theta = scene.params[h].value;
+
+  auto loss_at = [&](const std::vector<float>& v) {
+    scene.params[h].value = v;  // sampling tables are deliberately not rebuilt (see header)
+    Image img = render(scene, quiet.pass);
+    return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
+  };
+  std::mt19937_64 rng(direction_seed);
+  std::normal_distribution<double> normal;
+  std::vector<CheckRow> rows;
+  for (int d = 0; d < directions; ++d) {
+    std::vector<double> v(theta.size());
+    double norm = 0;
+    for (auto& x : v) norm += (x = normal(rng)) * x;
+    norm = std::sqrt(norm);
+    CheckRow row;
+    std::vector<float> plus(theta.size()), minus(theta.size());
+    for (size_t i = 0; i < v.size(); ++i) {
+      v[i] /= norm;
+      row.adjoint += double(gradient[i]) * v[i];
+      plus[i] = float(double(theta[i]) + eps * v[i]);
+      minus[i] = float(double(theta[i]) - eps * v[i]);
+    }
+    // Use the step actually representable in float, not the nominal one.
+    double step = 0;
+    for (size_t i = 0; i < v.size(); ++i) step += (double(plus[i]) - double(minus[i])) * v[i];
+    row.finite_difference = (loss_at(plus) - loss_at(minus)) / step;
+    row.relative_error = std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
+    rows.push_back(row);
+  }
+  scene.params[h].value = theta;
+  return rows;
+}
+
+void dump_parameter_values(const ParamStore& params, const std::string& dir) {
+  fs::create_directories(dir);
+  nlohmann::json small = nlohmann::json::object();
+  for (const auto& p : params.all()) {
+    if (p.is_image()) {
+      Image img(p.width(), p.height(), p.channels());
+      img.data = p.value;
+      write_image((fs::path(dir) / (p.name + ".exr")).string(), img);
+    } else {
+      small[p.name] = {{"shape", p.shape}, {"value", p.value}};
+    }
+  }
+  write_text_atomic((fs::path(dir) / "params.json").string(), small.dump(1) + "\n");
+}
+
+void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const GradientResult& r, const std::string& dir) {
+  fs::create_directories(dir);
+  write_image((fs::path(dir) / "image.exr").string(), r.image);
+  nlohmann::json j;
+  j["method"] = method_name(rq.method);
+  if (rq.adjoint_image)
+    j["functional"] = r.loss;
+  else {
+    j["loss"] = r.loss;
+    j["loss_type"] = loss_name(rq.loss);
+  }
+  j["spp"] = rq.pass.spp;
+  j["seed"] = rq.pass.seed;
+  j["adjoint_seed"] = rq.adjoint_seed;
+  j["max_depth"] = scene.settings.max_depth;
+  j["rr_depth"] = scene.settings.rr_depth;
+  j["timings"] = {{"primal_seconds", r.primal_seconds}, {"adjoint_seconds", r.adjoint_seconds},
+                  {"total_seconds", r.primal_seconds + r.adjoint_seconds}};
+  if (rq.method == GradientMethod::Taped) j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}};
+  nlohmann::json params = nlohmann::json::object();
+  for (const auto& p : scene.params.all()) {
+    if (!p.requires_grad) continue;
+    double norm = 0;
+    for (float g : p.grad) norm += double(g) * double(g);
+    nlohmann::json e{{"shape", p.shape}, {"size", p.size()}, {"grad_norm", std::sqrt(norm)}};
+    if (p.size() <= 64) {
+      e["grad"] = p.grad;
+    } else {
+      std::string file = p.name + ".grad.exr";
+      Image img(p.width(), p.height(), p.channels());
+      img.data = p.grad;
+      if (!p.is_image()) img = Image(int(p.size()), 1, 1), img.data = p.grad;
+      write_image((fs::path(dir) / file).string(), img);
+      e["file"] = file;
+    }
+    params[p.name] = e;
+  }
+  j["parameters"] = params;
+  write_text_atomic((fs::path(dir) / "gradients.json").string(), j.dump(1) + "\n");
+}
+
+}  // namespace bl

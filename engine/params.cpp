@@ -1,0 +1,60 @@
+#include "engine/params.h"
+
+#include "engine/errors.h"
+
+namespace bl {
+
+int ParamStore::add(Param p) {
+  if (find(p.name) >= 0) throw InputError("duplicate parameter name '" + p.name + "'");
+  p.grad.assign(p.value.size(), 0.f);
+  params_.push_back(std::move(p));
+  return int(params_.size() - 1);
+}
+
+int ParamStore::find(const std::string& name) const {
+  for (size_t i = 0; i < params_.size(); ++i)
+    if (params_[i].name == name) return int(i);
+  return -1;
+}
+
+std::string ParamStore::shape_string(int handle) const {
+  std::string s = "[";
+  const auto& shape = params_[size_t(handle)].shape;
+  for (size_t i = 0; i < shape.size(); ++i) s += (i ? "," : "") + std::to_string(shape[i]);
+  return s + "]";
+}
+
+void ParamStore::require_grad(const std::vector<std::string>& names) {
+  for (auto& p : params_) p.requires_grad = names.empty();
+  for (const auto& n : names) {
+    int h = find(n);
+    if (h < 0) throw InputError("unknown parameter '" + n + "' (see `backlight params`)");
+    params_[size_t(h)].requires_grad = true;
+  }
+  small_total_ = 0;
+  size_t flat = 0;
+  for (auto& p : params_) {
+    p.small = p.size() <= kSmallParamLimit;
+    p.small_offset = p.small ? small_total_ : 0;
+    if (p.small) small_total_ += p.size();
+    p.tape_offset = flat;
+    flat += p.size();
+  }
+  zero_grad();
+}
+
+void ParamStore::zero_grad() {
+  for (auto& p : params_) p.grad.assign(p.value.size(), 0.f);
+}
+
+void GradientSink::reduce() {
+  std::vector<double> total(store_.small_total(), 0.0);
+  for (auto& acc : per_thread_)
+    for (size_t i = 0; i < total.size(); ++i) total[i] += acc.small()[i];
+  for (auto& p : store_.all())
+    if (p.small && p.requires_grad)
+      for (size_t i = 0; i < p.size(); ++i) p.grad[i] += float(total[p.small_offset + i]);
+  per_thread_.clear();
+}
+
+}  // namespace bl

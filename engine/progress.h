@@ -1,0 +1,36 @@
+#pragma once
+// Progress bar on stderr with rate and ETA, safe to call from worker threads.
+// On a terminal it redraws in place a few times a second; otherwise (logs, CI) it prints a line
+// every few seconds so long runs still show they are alive.
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <mutex>
+#include <string>
+
+namespace bl {
+
+class Progress {
+ public:
+  Progress(std::string label, uint64_t total, std::string unit, bool enabled);
+  ~Progress();
+  void advance(uint64_t n);
+  void finish();  // prints the final state and a newline
+  double elapsed() const;
+
+ private:
+  void print(uint64_t done, bool final);
+  std::string label_, unit_;
+  uint64_t total_;
+  bool enabled_, tty_, finished_ = false;
+  std::atomic<uint64_t> done_{0};
+  std::chrono::steady_clock::time_point start_;
+  std::atomic<int64_t> last_print_ns_{0};
+  std::mutex print_mutex_;
+};
+
+// "1.23 M" style formatting for rates and counts.
+std::string human_count(double v);
+std::string human_seconds(double s);
+
+}  // namespace bl

@@ -1,0 +1,219 @@
+#include "engine/scene.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace bl {
+
+float Mesh::triangle_area(size_t t) const {
+  const Vec3f& a = positions[indices[3 * t]];
+  const Vec3f& b = positions[indices[3 * t + 1]];
+  const Vec3f& c = positions[indices[3 * t + 2]];
+  return 0.5f * length(cross(b - a, c - a));
+}
+
+void Scene::prepare() {
+  for (auto& cam : cameras) cam.update();
+  for (auto& e : area_emitters) {
+    const Mesh& m = meshes[size_t(e.mesh)];
+    std::vector<double> areas(m.triangle_count());
+    double total = 0;
+    for (size_t t = 0; t < areas.size(); ++t) total += areas[t] = m.triangle_area(t);
+    e.total_area = float(total);
+    e.triangle_cdf.resize(areas.size());
+    double run = 0;
+    for (size_t t = 0; t < areas.size(); ++t) e.triangle_cdf[t] = float((run += areas[t]) / total);
+    if (!e.triangle_cdf.empty()) e.triangle_cdf.back() = 1.f;
+  }
+  geometry = std::make_unique<Geometry>();
+  geometry->build(meshes);
+  prepare_sampling();
+}
+
+void Scene::prepare_sampling() { environment.prepare(params); }
+
+SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {
+  const Mesh& m = meshes[size_t(hit.mesh)];
+  const uint32_t i0 = m.indices[3 * size_t(hit.triangle)], i1 = m.indices[3 * size_t(hit.triangle) + 1],
+                 i2 = m.indices[3 * size_t(hit.triangle) + 2];
+  const float b0 = 1.f - hit.b1 - hit.b2;
+  SurfacePoint sp;
+  sp.mesh = hit.mesh;
+  sp.p = ray.origin + ray.direction * hit.t;
+  sp.geometric_normal = normalize(cross(m.positions[i1] - m.positions[i0], m.positions[i2] - m.positions[i0]));
+  if (!m.normals.empty()) {
+    Vec3f n = m.normals[i0] * b0 + m.normals[i1] * hit.b1 + m.normals[i2] * hit.b2;
+    float len = length(n);
+    sp.shading_normal = len > 0 ? n / len : sp.geometric_normal;
+  } else {
+    sp.shading_normal = sp.geometric_normal;
+  }
+  if (!m.uvs.empty()) {
+    sp.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * hit.b1 + m.uvs[i2].x * hit.b2,
+             m.uvs[i0].y * b0 + m.uvs[i1].y * hit.b1 + m.uvs[i2].y * hit.b2};
+  } else {
+    sp.uv = {hit.b1, hit.b2};
+  }
+  return sp;
+}
+
+EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) const {
+  const AreaEmitter& e = area_emitters[size_t(index)];
+  const Mesh& m = meshes[size_t(e.mesh)];
+  // Pick a triangle by area with u.x, then reuse the remainder of u.x inside it.
+  size_t t = size_t(std::lower_bound(e.triangle_cdf.begin(), e.triangle_cdf.end(), u.x) - e.triangle_cdf.begin());
+  t = std::min(t, e.triangle_cdf.size() - 1);
+  float lo = t == 0 ? 0.f : e.triangle_cdf[t - 1], hi = e.triangle_cdf[t];
+  float ux = hi > lo ? std::clamp((u.x - lo) / (hi - lo), 0.f, 1.f) : 0.f;
+  // Uniform point on the triangle (square-root parameterisation).
+  float su = std::sqrt(ux), b1 = 1.f - su, b2 = u.y * su, b0 = 1.f - b1 - b2;
+  const uint32_t i0 = m.indices[3 * t], i1 = m.indices[3 * t + 1], i2 = m.indices[3 * t + 2];
+  EmitterSample s;
+  s.point = m.positions[i0] * b0 + m.positions[i1] * b1 + m.positions[i2] * b2;
+  Vec3f n = normalize(cross(m.positions[i1] - m.positions[i0], m.positions[i2] - m.positions[i0]));
+  Vec3f shading = n;
+  if (!m.normals.empty()) shading = normalize(m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2);
+  if (!m.uvs.empty())
+    s.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * b1 + m.uvs[i2].x * b2, m.uvs[i0].y * b0 + m.uvs[i1].y * b1 + m.uvs[i2].y * b2};
+  else
+    s.uv = {b1, b2};
+  Vec3f to = s.point - ref;
+  float d2 = dot(to, to);
+  s.distance = std::sqrt(d2);
+  if (s.distance <= 0.f) return {};
+  s.wi = to / s.distance;
+  // Emission leaves on the shading normal's side; the pdf uses the geometric cosine.
+  float cos_shading = -dot(shading, s.wi);
+  float cos_geometric = std::abs(dot(n, s.wi));
+  if (cos_shading <= 0.f || cos_geometric <= 0.f) return {};
+  s.pdf = d2 / (cos_geometric * e.total_area);
+  return s;
+}
+
+}  // namespace bl
+
+// ---- Built-in shapes, mesh finishing, parameter overrides -------------------------------------
+
+#include <cstring>
+#include <sstream>
+
+#include "engine/errors.h"
+#include "engine/image_io.h"
+#include "engine/scene_load.h"
+
+namespace bl {
+
+Mesh make_rectangle() {
+  Mesh m;
+  m.positions = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  m.normals.assign(4, {0, 0, 1});
+  // uv = ((x+1)/2, (1−y)/2): row 0 of an image lands at the top (+y).
+  m.uvs = {{0, 1}, {1, 1}, {1, 0}, {0, 0}};
+  m.indices = {0, 1, 2, 0, 2, 3};
+  return m;
+}
+
+Mesh make_cube() {
+  Mesh m;
+  // Each face: outward normal n, in-plane axes a (u) and b (v up); corners n ± a ± b.
+  const Vec3f faces[6][3] = {{{1, 0, 0}, {0, 0, -1}, {0, 1, 0}},  {{-1, 0, 0}, {0, 0, 1}, {0, 1, 0}},
+                             {{0, 1, 0}, {1, 0, 0}, {0, 0, -1}},  {{0, -1, 0}, {1, 0, 0}, {0, 0, 1}},
+                             {{0, 0, 1}, {1, 0, 0}, {0, 1, 0}},   {{0, 0, -1}, {-1, 0, 0}, {0, 1, 0}}};
+  for (const auto& f : faces) {
+    const Vec3f n = f[0], a = f[1], b = f[2];
+    uint32_t base = uint32_t(m.positions.size());
+    const float corners[4][2] = {{-1, -1}, {1, -1}, {1, 1}, {-1, 1}};
+    for (const auto& c : corners) {
+      m.positions.push_back(n + a * c[0] + b * c[1]);
+      m.normals.push_back(n);
+      m.uvs.push_back({(c[0] + 1) / 2, (1 - c[1]) / 2});
+    }
+    // Winding (p1−p0)×(p2−p0) = a×b must agree with n; every face above has a×b = n.
+    for (uint32_t i : {0u, 1u, 2u, 0u, 2u, 3u}) m.indices.push_back(base + i);
+  }
+  return m;
+}
+
+void finalize_mesh(Mesh& m, const Transform& to_world, bool flip_normals, const std::string& where) {
+  // Expects an unpadded mesh (as built by make_*, inline meshes and load_gltf_meshes).
+  for (auto& p : m.positions) p = to_world.point(p);
+  for (auto& n : m.normals) n = to_world.normal(n);
+  const float det = to_world.m[0][0] * (to_world.m[1][1] * to_world.m[2][2] - to_world.m[1][2] * to_world.m[2][1]) -
+                    to_world.m[0][1] * (to_world.m[1][0] * to_world.m[2][2] - to_world.m[1][2] * to_world.m[2][0]) +
+                    to_world.m[0][2] * (to_world.m[1][0] * to_world.m[2][1] - to_world.m[1][1] * to_world.m[2][0]);
+  if (det == 0.f) throw InputError(where + ": degenerate transform (zero scale)");
+  // A mirroring transform reverses the winding; swap to keep it consistent with the normals.
+  bool swap = (det < 0) != flip_normals;
+  if (flip_normals)
+    for (auto& n : m.normals) n = -n;
+  if (swap)
+    for (size_t t = 0; t + 2 < m.indices.size(); t += 3) std::swap(m.indices[t + 1], m.indices[t + 2]);
+  for (const auto& p : m.positions)
+    if (!is_finite(p)) throw InputError(where + ": vertex position is not finite");
+  for (const auto& n : m.normals)
+    if (!is_finite(n)) throw InputError(where + ": vertex normal is not finite or zero");
+  if (m.indices.empty() || m.indices.size() % 3 != 0) throw InputError(where + ": mesh has no triangles");
+  for (uint32_t i : m.indices)
+    if (i >= m.positions.size()) throw InputError(where + ": triangle index out of range");
+  m.positions.push_back({0, 0, 0});  // Embree padding, see Mesh
+}
+
+void validate_param(const Param& p, const std::string& where) {
+  for (size_t i = 0; i < p.value.size(); ++i) {
+    float v = p.value[i];
+    if (!std::isfinite(v)) throw InputError(where + ": parameter '" + p.name + "' element " + std::to_string(i) + " is NaN or infinite");
+    if (v < p.lower || v > p.upper) {
+      std::ostringstream s;
+      s << where << ": parameter '" << p.name << "' element " << i << " = " << v << " is outside its valid range ["
+        << p.lower << ", " << p.upper << "]" << (v < 0 ? " (negative)" : "");
+      throw InputError(s.str());
+    }
+  }
+}
+
+void apply_override(Scene& scene, const std::string& assignment) {
+  auto eq = assignment.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw InputError("--set '" + assignment + "': expected NAME=FILE or NAME=v1,v2,...");
+  std::string name = assignment.substr(0, eq), rhs = assignment.substr(eq + 1);
+  int h = scene.params.find(name);
+  if (h < 0) throw InputError("--set: unknown parameter '" + name + "' (see `backlight params`)");
+  Param& p = scene.params[h];
+  std::vector<float> values;
+  bool numeric = !rhs.empty() && rhs.find_first_not_of("0123456789+-.eE, ") == std::string::npos;
+  if (numeric) {
+    std::stringstream ss(rhs);
+    std::string item;
+    while (std::getline(ss, item, ',')) {
+      char* end = nullptr;
+      float v = std::strtof(item.c_str(), &end);
+      if (item.empty() || end == item.c_str()) throw InputError("--set " + name + ": '" + item + "' is not a number");
+      values.push_back(v);
+    }
+    if (values.size() == 1 && p.size() > 1) values.assign(p.size(), values[0]);  // broadcast a scalar
+    if (values.size() == 3 && p.is_image() && p.channels() == 3) {
+      std::vector<float> full(p.size());
+      for (size_t i = 0; i < full.size(); ++i) full[i] = values[i % 3];
+      values = full;
+    }
+    if (values.size() != p.size())
+      throw InputError("--set " + name + ": got " + std::to_string(values.size()) + " values, parameter has shape " +
+                       scene.params.shape_string(h));
+  } else {
+    Image img = read_image(rhs, !p.is_image() ? false : true);
+    if (!p.is_image() || img.width != p.width() || img.height != p.height())
+      throw InputError(rhs + ": image is " + std::to_string(img.width) + "x" + std::to_string(img.height) +
+                       " but parameter '" + name + "' has shape " + scene.params.shape_string(h));
+    int c = p.channels();
+    values.resize(p.size());
+    for (size_t i = 0; i < img.pixel_count(); ++i)
+      for (int k = 0; k < c; ++k) values[i * size_t(c) + size_t(k)] = img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
+  }
+  Param candidate = p;
+  candidate.value = values;
+  validate_param(candidate, "--set " + name);
+  p.value = std::move(values);
+  scene.prepare_sampling();
+}
+
+}  // namespace bl

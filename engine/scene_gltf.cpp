@@ -1,0 +1,329 @@
+// glTF 2.0 (.gltf/.glb) loading through tinygltf: meshes with node transforms, cameras,
+// metallic-roughness materials and emissive materials as area lights.
+#include <tiny_gltf.h>
+
+#include <cmath>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <set>
+
+#include "engine/errors.h"
+#include "engine/image_io.h"
+#include "engine/scene_load.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string first_line(std::string s) {
+  while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
+  if (auto nl = s.find('\n'); nl != std::string::npos) s.resize(nl);
+  return s;
+}
+
+tinygltf::Model read_model(const std::string& path) {
+  if (!fs::exists(path)) throw file_error(path, "file not found");
+  tinygltf::TinyGLTF loader;
+  tinygltf::Model model;
+  std::string err, warn;
+  std::string ext = fs::path(path).extension().string();
+  for (auto& c : ext) c = char(std::tolower(c));
+  bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
+                          : loader.LoadASCIIFromFile(&model, &err, &warn, path);
+  if (!ok || !err.empty())
+    throw file_error(path, "invalid glTF: " + (err.empty() ? std::string("cannot parse") : first_line(err)));
+  return model;
+}
+
+Transform node_local(const tinygltf::Node& node) {
+  Transform t;
+  if (node.matrix.size() == 16) {
+    // glTF matrices are column-major.
+    for (int r = 0; r < 4; ++r)
+      for (int c = 0; c < 4; ++c) t.m[r][c] = float(node.matrix[size_t(c * 4 + r)]);
+    return t;
+  }
+  if (node.scale.size() == 3)
+    t = Transform::scale({float(node.scale[0]), float(node.scale[1]), float(node.scale[2])});
+  if (node.rotation.size() == 4) {
+    // Unit quaternion (x, y, z, w) → rotation matrix.
+    float x = float(node.rotation[0]), y = float(node.rotation[1]), z = float(node.rotation[2]), w = float(node.rotation[3]);
+    Transform r;
+    r.m[0][0] = 1 - 2 * (y * y + z * z); r.m[0][1] = 2 * (x * y - z * w);     r.m[0][2] = 2 * (x * z + y * w);
+    r.m[1][0] = 2 * (x * y + z * w);     r.m[1][1] = 1 - 2 * (x * x + z * z); r.m[1][2] = 2 * (y * z - x * w);
+    r.m[2][0] = 2 * (x * z - y * w);     r.m[2][1] = 2 * (y * z + x * w);     r.m[2][2] = 1 - 2 * (x * x + y * y);
+    t = r * t;
+  }
+  if (node.translation.size() == 3)
+    t = Transform::translate({float(node.translation[0]), float(node.translation[1]), float(node.translation[2])}) * t;
+  return t;
+}
+
+// Reads accessor `index` as floats (count × components), checking bounds against its buffer.
+std::vector<float> read_floats(const tinygltf::Model& model, int index, int components, const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT || tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
+    throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size()) throw file_error(path, "accessor without buffer view");
+  const auto& view = model.bufferViews[size_t(acc.bufferView)];
+  const auto& buf = model.buffers[size_t(view.buffer)];
+  size_t stride = view.byteStride ? view.byteStride : size_t(components) * 4;
+  size_t start = view.byteOffset + acc.byteOffset;
+  if (acc.count > 0 && start + stride * (acc.count - 1) + size_t(components) * 4 > buf.data.size())
+    throw file_error(path, "accessor " + std::to_string(index) + " reads past the end of its buffer");
+  std::vector<float> out(acc.count * size_t(components));
+  for (size_t i = 0; i < acc.count; ++i)
+    std::memcpy(&out[i * size_t(components)], buf.data.data() + start + i * stride, size_t(components) * 4);
+  for (float v : out)
+    if (!std::isfinite(v)) throw file_error(path, "accessor " + std::to_string(index) + " holds non-finite values");
+  return out;
+}
+
+std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  const auto& view = model.bufferViews.at(size_t(acc.bufferView));
+  const auto& buf = model.buffers.at(size_t(view.buffer));
+  size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
+                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
+                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
+                                                                              : 0;
+  if (!size) throw file_error(path, "unsupported index type");
+  size_t stride = view.byteStride ? view.byteStride : size;
+  size_t start = view.byteOffset + acc.byteOffset;
+  if (acc.count > 0 && start + stride * (acc.count - 1) + size > buf.data.size())
+    throw file_error(path, "index accessor reads past the end of its buffer");
+  std::vector<uint32_t> out(acc.count);
+  for (size_t i = 0; i < acc.count; ++i) {
+    const unsigned char* p = buf.data.data() + start + i * stride;
+    out[i] = size == 1 ? p[0] : size == 2 ? uint32_t(p[0] | (p[1] << 8)) : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
+  }
+  return out;
+}
+
+struct Primitive {
+  Mesh mesh;  // world space, unpadded
+  int material = -1;
+  std::string name;
+};
+
+std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const std::string& path,
+                                          const Transform& to_world, std::vector<std::pair<Transform, int>>* cameras) {
+  std::vector<Primitive> out;
+  std::function<void(int, const Transform&, int)> visit = [&](int ni, const Transform& parent, int depth) {
+    if (ni < 0 || size_t(ni) >= model.nodes.size() || depth > 64) throw file_error(path, "invalid node hierarchy");
+    const auto& node = model.nodes[size_t(ni)];
+    Transform world = parent * node_local(node);
+    if (node.camera >= 0 && cameras) cameras->push_back({world, node.camera});
+    if (node.mesh >= 0) {
+      if (size_t(node.mesh) >= model.meshes.size()) throw file_error(path, "node references a missing mesh");
+      const auto& gm = model.meshes[size_t(node.mesh)];
+      for (size_t pi = 0; pi < gm.primitives.size(); ++pi) {
+        const auto& prim = gm.primitives[pi];
+        if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
+        auto pos_it = prim.attributes.find("POSITION");
+        if (pos_it == prim.attributes.end()) throw file_error(path, "primitive without POSITION");
+        Primitive p;
+        std::vector<float> pos = read_floats(model, pos_it->second, 3, path);
+        for (size_t i = 0; i + 2 < pos.size(); i += 3) p.mesh.positions.push_back(world.point({pos[i], pos[i + 1], pos[i + 2]}));
+        if (auto it = prim.attributes.find("NORMAL"); it != prim.attributes.end()) {
+          std::vector<float> nrm = read_floats(model, it->second, 3, path);
+          for (size_t i = 0; i + 2 < nrm.size(); i += 3) p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
+        }
+        if (auto it = prim.attributes.find("TEXCOORD_0"); it != prim.attributes.end()) {
+          std::vector<float> uv = read_floats(model, it->second, 2, path);
+          for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
+        }
+        if (prim.indices >= 0) {
+          p.mesh.indices = read_indices(model, prim.indices, path);
+        } else {
+          for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) p.mesh.indices.push_back(i);
+        }
+        if ((!p.mesh.normals.empty() && p.mesh.normals.size() != p.mesh.positions.size()) ||
+            (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()))
+          throw file_error(path, "attribute counts disagree in mesh '" + gm.name + "'");
+        for (uint32_t i : p.mesh.indices)
+          if (i >= p.mesh.positions.size()) throw file_error(path, "triangle index out of range in mesh '" + gm.name + "'");
+        // glTF winding is counter-clockwise seen from the front, i.e. (p1−p0)×(p2−p0) is the front
+        // normal; a mirroring node transform reverses it.
+        const float det = world.m[0][0] * (world.m[1][1] * world.m[2][2] - world.m[1][2] * world.m[2][1]) -
+                          world.m[0][1] * (world.m[1][0] * world.m[2][2] - world.m[1][2] * world.m[2][0]) +
+                          world.m[0][2] * (world.m[1][0] * world.m[2][1] - world.m[1][1] * world.m[2][0]);
+        if (det < 0)
+          for (size_t t = 0; t + 2 < p.mesh.indices.size(); t += 3) std::swap(p.mesh.indices[t + 1], p.mesh.indices[t + 2]);
+        p.material = prim.material;
+        p.name = (gm.name.empty() ? "mesh" + std::to_string(node.mesh) : gm.name) +
+                 (gm.primitives.size() > 1 ? "_" + std::to_string(pi) : "");
+        out.push_back(std::move(p));
+      }
+    }
+    for (int c : node.children) visit(c, world, depth + 1);
+  };
+  if (model.nodes.empty()) return out;
+  int scene_index = model.defaultScene >= 0 ? model.defaultScene : 0;
+  if (!model.scenes.empty()) {
+    if (size_t(scene_index) >= model.scenes.size()) throw file_error(path, "default scene out of range");
+    for (int n : model.scenes[size_t(scene_index)].nodes) visit(n, to_world, 0);
+  } else {
+    for (size_t n = 0; n < model.nodes.size(); ++n) visit(int(n), to_world, 0);
+  }
+  return out;
+}
+
+std::string sanitize(std::string name) {
+  for (auto& c : name)
+    if (c == '.' || c == ' ' || c == '=') c = '_';
+  return name;
+}
+
+}  // namespace
+
+std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world) {
+  tinygltf::Model model = read_model(path);
+  std::vector<Mesh> meshes;
+  for (auto& p : collect_primitives(model, path, to_world, nullptr)) meshes.push_back(std::move(p.mesh));
+  return meshes;
+}
+
+std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
+  tinygltf::Model model = read_model(path);
+  auto scene = std::make_unique<Scene>();
+  scene->source = path;
+  std::vector<std::pair<Transform, int>> cameras;
+  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras);
+  if (prims.empty()) throw file_error(path, "no triangle meshes in the default scene");
+
+  // Materials, created on first use; names come from the file (made unique and '.'-free).
+  std::map<int, int> material_of;
+  std::set<std::string> used_names;
+  auto unique = [&](std::string n) {
+    n = sanitize(n);
+    std::string base = n;
+    for (int k = 2; used_names.count(n); ++k) n = base + "_" + std::to_string(k);
+    used_names.insert(n);
+    return n;
+  };
+  auto add_param = [&](const std::string& name, std::vector<int> shape, std::vector<float> value, float lo, float hi) {
+    Param p;
+    p.name = name;
+    p.shape = std::move(shape);
+    p.value = std::move(value);
+    p.lower = lo;
+    p.upper = hi;
+    validate_param(p, path);
+    TextureSlot s;
+    s.param = scene->params.add(std::move(p));
+    return s;
+  };
+  auto material_for = [&](int gi) {
+    if (auto it = material_of.find(gi); it != material_of.end()) return it->second;
+    Material m;
+    tinygltf::Material gm;
+    if (gi >= 0) {
+      if (size_t(gi) >= model.materials.size()) throw file_error(path, "primitive references a missing material");
+      gm = model.materials[size_t(gi)];
+    }
+    m.name = unique(gm.name.empty() ? "material" + std::to_string(gi < 0 ? 0 : gi) : gm.name);
+    m.two_sided = true;  // glTF's doubleSided=false is a culling hint; shading stays two-sided
+    const auto& pbr = gm.pbrMetallicRoughness;
+    std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
+    const bool metal = pbr.metallicFactor >= 0.5;
+    m.type = metal ? BsdfType::RoughConductor : BsdfType::RoughPlastic;
+    float alpha = float(pbr.roughnessFactor * pbr.roughnessFactor);
+    m.roughness = add_param(m.name + ".roughness", {1}, {alpha}, 0.f, 4.f);
+    TextureSlot color;
+    const std::string key = metal ? ".specular" : ".albedo";
+    if (pbr.baseColorTexture.index >= 0) {
+      const auto& tex = model.textures.at(size_t(pbr.baseColorTexture.index));
+      const auto& img = model.images.at(size_t(tex.source));
+      if (img.image.empty() || img.width <= 0 || img.component < 3 || img.bits != 8)
+        throw file_error(path, "base colour texture '" + img.uri + "' could not be decoded as 8-bit RGB(A)");
+      std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
+      for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
+        for (int c = 0; c < 3; ++c)
+          v[i * 3 + size_t(c)] =
+              std::min(1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
+      color = add_param(m.name + key, {img.height, img.width, 3}, std::move(v), 0.f, 1.f);
+      color.bitmap = true;
+      int wrap = tex.sampler >= 0 ? model.samplers.at(size_t(tex.sampler)).wrapS : 10497;
+      color.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
+    } else {
+      color = add_param(m.name + key, {3}, base, 0.f, 1.f);
+    }
+    (metal ? m.specular : m.albedo) = color;
+    scene->materials.push_back(std::move(m));
+    return material_of[gi] = int(scene->materials.size() - 1);
+  };
+
+  std::set<std::string> shape_names;
+  for (auto& p : prims) {
+    Mesh mesh = std::move(p.mesh);
+    mesh.name = sanitize(p.name);
+    for (int k = 2; shape_names.count(mesh.name); ++k) mesh.name = sanitize(p.name) + "_" + std::to_string(k);
+    shape_names.insert(mesh.name);
+    mesh.material = material_for(p.material);
+    finalize_mesh(mesh, Transform(), false, path + ": mesh '" + mesh.name + "'");
+    if (p.material >= 0) {
+      const auto& gm = model.materials[size_t(p.material)];
+      double strength = 1.0;
+      if (auto it = gm.extensions.find("KHR_materials_emissive_strength"); it != gm.extensions.end() &&
+                                                                           it->second.Has("emissiveStrength"))
+        strength = it->second.Get("emissiveStrength").GetNumberAsDouble();
+      std::vector<float> e;
+      for (size_t c = 0; c < 3 && c < gm.emissiveFactor.size(); ++c) e.push_back(float(gm.emissiveFactor[c] * strength));
+      if (e.size() == 3 && (e[0] > 0 || e[1] > 0 || e[2] > 0)) {
+        AreaEmitter em;
+        em.mesh = int(scene->meshes.size());
+        em.radiance = add_param(mesh.name + ".radiance", {3}, e, 0.f, 1e30f);
+        mesh.emitter = int(scene->area_emitters.size());
+        scene->area_emitters.push_back(std::move(em));
+      }
+    }
+    scene->meshes.push_back(std::move(mesh));
+  }
+
+  // Cameras: every perspective camera in the file, else one framing the bounding box.
+  for (auto& [xf, ci] : cameras) {
+    const auto& gc = model.cameras.at(size_t(ci));
+    if (gc.type != "perspective") continue;
+    Camera c;
+    c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
+    c.fov_axis_x = false;
+    c.fov_degrees = float(gc.perspective.yfov * 180.0 / M_PI);
+    double aspect = gc.perspective.aspectRatio > 0 ? gc.perspective.aspectRatio : 1.0;
+    c.width = 512;
+    c.height = std::max(1, int(std::lround(512.0 / aspect)));
+    c.origin = xf.point({0, 0, 0});
+    c.target = c.origin + normalize(xf.vector({0, 0, -1}));
+    c.up = normalize(xf.vector({0, 1, 0}));
+    c.near_clip = float(std::max(1e-4, gc.perspective.znear));
+    scene->cameras.push_back(c);
+  }
+  if (scene->cameras.empty()) {
+    Vec3f lo(1e30f), hi(-1e30f);
+    for (const auto& m : scene->meshes)
+      for (size_t i = 0; i < m.vertex_count(); ++i)
+        for (int k = 0; k < 3; ++k) lo[k] = std::min(lo[k], m.positions[i][k]), hi[k] = std::max(hi[k], m.positions[i][k]);
+    Vec3f center = (lo + hi) * 0.5f;
+    float radius = 0.5f * length(hi - lo);
+    Camera c;
+    c.name = "default";
+    c.fov_degrees = 40.f;
+    c.target = center;
+    c.origin = center + Vec3f(0, 0.3f, 1.f) * (radius / std::tan(20.f * kPi / 180.f) / length(Vec3f(0, 0.3f, 1.f)) * 1.1f);
+    scene->cameras.push_back(c);
+  }
+  // A default sky: white when nothing emits, dim otherwise so the emitters dominate.
+  scene->environment.present = true;
+  scene->environment.is_map = false;
+  float sky = scene->area_emitters.empty() ? 1.f : 0.1f;
+  scene->environment.param = add_param("environment.radiance", {3}, {sky, sky, sky}, 0.f, 1e30f).param;
+  scene->prepare();
+  return scene;
+}
+
+}  // namespace bl

@@ -1,0 +1,108 @@
+#pragma once
+// Reverse-mode AD scalar for the taped baseline.
+// A Var is a float value plus the index of the tape entry that produced it; index kConstant
+// means the value does not depend on any parameter (activity analysis): operations on constants
+// are plain float arithmetic and record nothing. An entry stores up to two operand indices and
+// the local partials (16 bytes); parameter reads record a leaf entry naming the parameter
+// element. One tape per worker thread; `current_tape` selects it.
+#include <cmath>
+#include <cstdint>
+#include <type_traits>
+#include <vector>
+
+#include "engine/params.h"
+
+namespace bl {
+
+struct TapeEntry {
+  uint32_t a, b;  // operand entries, kNone when absent; a == kLeaf: b is a flat parameter index
+  float da, db;   // ∂result/∂a, ∂result/∂b
+};
+static_assert(sizeof(TapeEntry) == 16);
+
+struct Tape {
+  static constexpr uint32_t kNone = 0xffffffffu, kLeaf = 0xfffffffeu;
+  std::vector<TapeEntry> entries;
+  uint32_t push(uint32_t a, float da, uint32_t b, float db) {
+    entries.push_back({a, b, da, db});
+    return uint32_t(entries.size() - 1);
+  }
+};
+
+inline thread_local Tape* current_tape = nullptr;
+
+struct Var {
+  static constexpr uint32_t kConstant = Tape::kNone;
+  float v = 0.f;
+  uint32_t index = kConstant;
+  Var() = default;
+  Var(float x) : v(x) {}  // NOLINT: constants promote implicitly
+  Var(float x, uint32_t i) : v(x), index(i) {}
+  bool active() const { return index != kConstant; }
+};
+
+inline float value_of(const Var& a) { return a.v; }
+
+// Records result = f(a, b) with partials (da, db) when any operand is active.
+inline Var record(float value, const Var& a, float da, const Var& b, float db) {
+  if (!a.active() && !b.active()) return Var(value);
+  if (!b.active()) return Var(value, current_tape->push(a.index, da, Tape::kNone, 0.f));
+  if (!a.active()) return Var(value, current_tape->push(b.index, db, Tape::kNone, 0.f));
+  return Var(value, current_tape->push(a.index, da, b.index, db));
+}
+inline Var record(float value, const Var& a, float da) {
+  if (!a.active()) return Var(value);
+  return Var(value, current_tape->push(a.index, da, Tape::kNone, 0.f));
+}
+
+inline Var operator+(const Var& a, const Var& b) { return record(a.v + b.v, a, 1.f, b, 1.f); }
+inline Var operator-(const Var& a, const Var& b) { return record(a.v - b.v, a, 1.f, b, -1.f); }
+inline Var operator*(const Var& a, const Var& b) { return record(a.v * b.v, a, b.v, b, a.v); }
+inline Var operator/(const Var& a, const Var& b) {
+  float inv = 1.f / b.v;
+  return record(a.v / b.v, a, inv, b, -a.v * inv * inv);
+}
+inline Var operator-(const Var& a) { return record(-a.v, a, -1.f); }
+// Mixed with plain numbers: one operand, one entry (or none).
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator+(const Var& a, U b) { return record(a.v + float(b), a, 1.f); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator+(U a, const Var& b) { return record(float(a) + b.v, b, 1.f); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator-(const Var& a, U b) { return record(a.v - float(b), a, 1.f); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator-(U a, const Var& b) { return record(float(a) - b.v, b, -1.f); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator*(const Var& a, U b) { return record(a.v * float(b), a, float(b)); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator*(U a, const Var& b) { return record(float(a) * b.v, b, float(a)); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator/(const Var& a, U b) { return record(a.v / float(b), a, 1.f / float(b)); }
+template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
+Var operator/(U a, const Var& b) { return record(float(a) / b.v, b, -float(a) / (b.v * b.v)); }
+
+template <class B> bool operator<(const Var& a, const B& b) { return a.v < value_of(b); }
+template <class B> bool operator>(const Var& a, const B& b) { return a.v > value_of(b); }
+
+inline Var sqrt(const Var& a) {
+  float r = std::sqrt(a.v);
+  return record(r, a, 0.5f / r);
+}
+inline Var exp(const Var& a) {
+  float r = std::exp(a.v);
+  return record(r, a, r);
+}
+inline Var log(const Var& a) { return record(std::log(a.v), a, 1.f / a.v); }
+inline Var abs(const Var& a) { return record(std::abs(a.v), a, a.v < 0 ? -1.f : 1.f); }
+inline Var pow(const Var& a, float e) { return record(std::pow(a.v, e), a, e * std::pow(a.v, e - 1.f)); }
+
+// Parameter reads become leaves when the parameter wants a gradient, constants otherwise.
+template <>
+struct ParamLoad<Var> {
+  static Var load(const Param& p, size_t index) {
+    if (!p.requires_grad) return Var(p.value[index]);
+    return Var(p.value[index], current_tape->push(Tape::kLeaf, 0.f, uint32_t(p.tape_offset + index), 0.f));
+  }
+};
+
+}  // namespace bl

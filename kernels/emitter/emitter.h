@@ -1,0 +1,20 @@
+#pragma once
+// Emitter contract.
+// eval<T>: emitted radiance of scalar T leaving the emitter towards the viewer.
+// sample: a direction (or point) with its solid-angle pdf, measured from a reference point.
+// pdf: the solid-angle density of `sample` for a given direction.
+// backprop: adds the adjoint (RGB) times ∂radiance/∂θ into the radiance parameter's gradient.
+// The light-selection probability (uniform over emitters) is applied by the integrator.
+#include "engine/math.h"
+
+namespace bl {
+
+struct EmitterSample {
+  Vec3f wi;              // unit direction from the reference point towards the emitter
+  float distance = 0.f;  // to the sampled point; infinity for environments
+  float pdf = 0.f;       // solid angle, excluding the light-selection probability
+  Vec2f uv;              // where the radiance texture is read
+  Vec3f point;
+};
+
+}  // namespace bl

@@ -1,0 +1,108 @@
+#include "kernels/emitter/envmap.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace bl {
+
+void Distribution1D::build(const std::vector<double>& weights) {
+  const size_t n = weights.size();
+  cdf.assign(n + 1, 0.f);
+  pmf.assign(n, 0.f);
+  double sum = 0;
+  for (double w : weights) sum += std::max(0.0, w);
+  total = float(sum);
+  double running = 0;
+  for (size_t i = 0; i < n; ++i) {
+    double w = sum > 0 ? std::max(0.0, weights[i]) / sum : 1.0 / double(n);
+    pmf[i] = float(w);
+    running += w;
+    cdf[i + 1] = float(running);
+  }
+  cdf[n] = 1.f;
+}
+
+int Distribution1D::sample(float u, float* u_remapped) const {
+  // First bin whose upper CDF bound exceeds u, skipping empty bins.
+  auto it = std::upper_bound(cdf.begin() + 1, cdf.end(), u);
+  int i = int(std::min<ptrdiff_t>(it - cdf.begin() - 1, ptrdiff_t(pmf.size()) - 1));
+  while (pmf[size_t(i)] == 0.f && i > 0) --i;
+  if (u_remapped) {
+    float w = pmf[size_t(i)];
+    *u_remapped = w > 0 ? std::clamp((u - cdf[size_t(i)]) / w, 0.f, std::nextafter(1.f, 0.f)) : 0.f;
+  }
+  return i;
+}
+
+Vec2f Environment::direction_to_uv(const Vec3f& d) {
+  float u = 0.5f + std::atan2(d.x, -d.z) * (0.5f * kInvPi);
+  float v = std::acos(std::clamp(d.y, -1.f, 1.f)) * kInvPi;
+  return {u, v};
+}
+
+Vec3f Environment::uv_to_direction(Vec2f uv) {
+  float phi = (uv.x - 0.5f) * 2.f * kPi, theta = uv.y * kPi;
+  float st = std::sin(theta);
+  return {st * std::sin(phi), std::cos(theta), -st * std::cos(phi)};
+}
+
+size_t Environment::texel_index(const Vec3f& dir) const {
+  Vec2f uv = direction_to_uv(dir);
+  int col = std::clamp(int(uv.x * float(width)), 0, width - 1);
+  int row = std::clamp(int(uv.y * float(height)), 0, height - 1);
+  return size_t(row) * size_t(width) + size_t(col);
+}
+
+void Environment::prepare(const ParamStore& s) {
+  if (!present || !is_map) return;
+  const Param& p = s[param];
+  width = p.width();
+  height = p.height();
+  std::vector<double> row_weights(size_t(height), 0.0);
+  cols.assign(size_t(height), {});
+  std::vector<double> w(static_cast<size_t>(width));
+  for (int r = 0; r < height; ++r) {
+    double sin_theta = std::sin((double(r) + 0.5) / double(height) * M_PI);
+    for (int c = 0; c < width; ++c) {
+      size_t b = (size_t(r) * size_t(width) + size_t(c)) * 3;
+      w[size_t(c)] = std::max(0.0, double(luminance({p.value[b], p.value[b + 1], p.value[b + 2]}))) * sin_theta;
+    }
+    cols[size_t(r)].build(w);
+    row_weights[size_t(r)] = cols[size_t(r)].total;
+  }
+  rows.build(row_weights);
+}
+
+EmitterSample Environment::sample(Vec2f u) const {
+  EmitterSample s;
+  s.distance = std::numeric_limits<float>::infinity();
+  if (!is_map) {
+    // Uniform sphere.
+    float z = 1.f - 2.f * u.x, r = std::sqrt(std::max(0.f, 1.f - z * z)), phi = 2.f * kPi * u.y;
+    s.wi = {r * std::cos(phi), z, r * std::sin(phi)};
+    s.pdf = 1.f / (4.f * kPi);
+    return s;
+  }
+  float uy, ux;
+  int row = rows.sample(u.y, &uy);
+  int col = cols[size_t(row)].sample(u.x, &ux);
+  Vec2f uv{(float(col) + ux) / float(width), (float(row) + uy) / float(height)};
+  s.wi = uv_to_direction(uv);
+  s.uv = uv;
+  s.pdf = pdf(s.wi);
+  return s;
+}
+
+float Environment::pdf(const Vec3f& dir) const {
+  if (!is_map) return 1.f / (4.f * kPi);
+  Vec2f uv = direction_to_uv(dir);
+  int col = std::clamp(int(uv.x * float(width)), 0, width - 1);
+  int row = std::clamp(int(uv.y * float(height)), 0, height - 1);
+  float sin_theta = std::sqrt(std::max(0.f, 1.f - dir.y * dir.y));
+  if (sin_theta <= 0.f) return 0.f;
+  float p_uv = rows.pmf[size_t(row)] * cols[size_t(row)].pmf[size_t(col)] * float(width) * float(height);
+  return p_uv / (2.f * kPi * kPi * sin_theta);
+}
+
+}  // namespace bl

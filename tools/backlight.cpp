@@ -1,0 +1,297 @@
+// backlight — command-line front end: render, params, grad, check, optimize.
+// Every user error (bad file, bad flag, bad value) prints one line "backlight: <problem>" and
+// exits with code 2; internal failures exit with 1.
+#include <CLI/CLI.hpp>
+#include <tbb/global_control.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+#include <memory>
+#include <optional>
+
+#include <nlohmann/json.hpp>
+
+#include "engine/errors.h"
+#include "engine/gradient.h"
+#include "engine/taped.h"
+#include "engine/image_io.h"
+#include "engine/loss.h"
+#include "engine/progress.h"
+#include "engine/render.h"
+#include "engine/scene_load.h"
+
+using namespace bl;
+namespace fs = std::filesystem;
+
+namespace {
+
+// Flags every scene-consuming command shares.
+struct SceneFlags {
+  std::string scene;
+  std::vector<std::string> sets;
+  std::string resolution;
+  int camera = 0;
+  std::optional<int> spp, max_depth, rr_depth;
+  std::optional<uint64_t> seed;
+  int threads = 0;
+  bool quiet = false;
+
+  void add_to(CLI::App* app) {
+    app->add_option("scene", scene, "Scene file (.json, or a .gltf/.glb rendered directly)")->required();
+    app->add_option("--set", sets, "Override a parameter: NAME=path/to/image.exr or NAME=v1,v2,v3 (repeatable)");
+    app->add_option("--resolution", resolution, "Film size WxH (overrides the camera's)");
+    app->add_option("--camera", camera, "Camera index (default 0)");
+    app->add_option("--spp", spp, "Samples per pixel (default: the scene's)");
+    app->add_option("--seed", seed, "Sampler seed (default: the scene's)");
+    app->add_option("--max-depth", max_depth,
+                    "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)");
+    app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off");
+    app->add_option("--threads", threads, "Worker threads (default: all cores)");
+    app->add_flag("--quiet,-q", quiet, "No progress bar");
+  }
+
+  std::unique_ptr<Scene> load() const {
+    auto s = load_scene(scene);
+    for (const auto& a : sets) apply_override(*s, a);
+    if (camera < 0 || size_t(camera) >= s->cameras.size())
+      throw InputError("--camera " + std::to_string(camera) + ": the scene has " + std::to_string(s->cameras.size()) +
+                       " camera(s)");
+    if (!resolution.empty()) {
+      int w = 0, h = 0;
+      char x = 0, extra = 0;
+      if (std::sscanf(resolution.c_str(), "%d%c%d%c", &w, &x, &h, &extra) != 3 || (x != 'x' && x != 'X') || w < 1 ||
+          h < 1 || w > 16384 || h > 16384)
+        throw InputError("--resolution '" + resolution + "': expected WxH, e.g. 256x256");
+      for (auto& c : s->cameras) c.width = w, c.height = h;
+      for (auto& c : s->cameras) c.update();
+    }
+    if (spp) {
+      if (*spp < 1) throw InputError("--spp must be ≥ 1");
+      s->settings.spp = *spp;
+    }
+    if (max_depth) {
+      if (*max_depth == 0 || *max_depth < -1) throw InputError("--max-depth must be ≥ 1, or -1 for unlimited");
+      s->settings.max_depth = *max_depth;
+    }
+    if (rr_depth) {
+      if (*rr_depth < 0) throw InputError("--rr-depth must be ≥ 0");
+      s->settings.rr_depth = *rr_depth;
+    }
+    if (seed) s->settings.seed = *seed;
+    return s;
+  }
+  PassOptions pass(const Scene& s) const {
+    PassOptions o;
+    o.camera = camera;
+    o.spp = s.settings.spp;
+    o.seed = s.settings.seed;
+    o.progress = !quiet;
+    return o;
+  }
+};
+
+std::unique_ptr<tbb::global_control> thread_limit(int threads) {
+  if (threads < 0) throw InputError("--threads must be ≥ 1");
+  if (threads == 0) return nullptr;
+  return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
+}
+
+Image read_target(const std::string& path, const Camera& cam, const char* what) {
+  Image t = read_image(path, true);
+  if (t.width != cam.width || t.height != cam.height)
+    throw file_error(path, std::string(what) + " is " + std::to_string(t.width) + "x" + std::to_string(t.height) +
+                               " but the camera renders " + std::to_string(cam.width) + "x" + std::to_string(cam.height));
+  if (t.channels < 3) {
+    Image rgb(t.width, t.height, 3);
+    for (size_t i = 0; i < t.pixel_count(); ++i)
+      for (int c = 0; c < 3; ++c) rgb.data[i * 3 + size_t(c)] = t.data[i * size_t(t.channels)];
+    return rgb;
+  }
+  return t;
+}
+
+int cmd_render(SceneFlags& f, const std::string& output) {
+  auto limit = thread_limit(f.threads);
+  auto scene = f.load();
+  PassStats stats;
+  Image img = render(*scene, f.pass(*scene), &stats);
+  write_image(output, img);
+  std::fprintf(stderr, "render: %dx%d, %d spp, %.2f s, %ssamples/s, %srays/s -> %s\n", img.width, img.height,
+               scene->settings.spp, stats.seconds, human_count(double(stats.samples) / stats.seconds).c_str(),
+               human_count(double(stats.rays) / stats.seconds).c_str(), output.c_str());
+  return 0;
+}
+
+int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
+  auto scene = f.load();
+  const auto& params = scene->params;
+  if (as_json) {
+    nlohmann::json arr = nlohmann::json::array();
+    for (size_t i = 0; i < params.count(); ++i)
+      arr.push_back({{"name", params[int(i)].name}, {"shape", params[int(i)].shape}, {"size", params[int(i)].size()}});
+    std::cout << arr.dump(1) << "\n";
+  } else {
+    for (size_t i = 0; i < params.count(); ++i)
+      std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(), params[int(i)].size());
+  }
+  if (!dump.empty()) dump_parameter_values(params, dump);
+  return 0;
+}
+
+
+struct GradFlags {
+  std::string target, adjoint_image, out, method = "prb", loss = "l2", memory_budget;
+  std::optional<uint64_t> adjoint_seed;
+  std::vector<std::string> params;
+  void add_to(CLI::App* app) {
+    app->add_option("--target", target, "Target image the loss compares the render with");
+    app->add_option("--adjoint-image", adjoint_image,
+                    "Back-propagate this image-space gradient dI instead of a loss (gradient of sum(dI * I))");
+    app->add_option("--out", out, "Output directory")->required();
+    app->add_option("--method", method, "prb (path replay, default), rb (radiative backpropagation) or taped");
+    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
+    app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)");
+    app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
+    app->add_option("--memory-budget", memory_budget, "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
+  }
+};
+
+struct CheckFlags {
+  std::string target, adjoint_image, param, method = "prb", loss = "l2";
+  int directions = 4;
+  double eps = 1e-2, tolerance = 1e-2;
+  uint64_t direction_seed = 1;
+  void add_to(CLI::App* app) {
+    app->add_option("--target", target, "Target image of the loss");
+    app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
+    app->add_option("--param", param, "Parameter to check")->required();
+    app->add_option("--directions", directions, "Number of random directions (default 4)");
+    app->add_option("--eps", eps, "Finite-difference step along each unit direction (default 1e-2)");
+    app->add_option("--tolerance", tolerance, "Largest accepted relative error; exit 1 above it (default 1e-2)");
+    app->add_option("--method", method, "prb (default), rb or taped");
+    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
+    app->add_option("--direction-seed", direction_seed, "Seed of the random directions");
+  }
+};
+
+GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std::string& method, const std::string& loss,
+                             const std::string& target, const std::string& adjoint_image, Image& target_img,
+                             Image& adjoint_img) {
+  GradientRequest rq;
+  rq.method = parse_method(method);
+  rq.loss = parse_loss(loss);
+  rq.pass = f.pass(scene);
+  rq.adjoint_seed = rq.pass.seed;
+  const Camera& cam = scene.cameras.at(size_t(f.camera));
+  if (!target.empty() == !adjoint_image.empty()) throw InputError("give exactly one of --target and --adjoint-image");
+  if (!target.empty()) {
+    target_img = read_target(target, cam, "target");
+    rq.target = &target_img;
+  } else {
+    adjoint_img = read_image(adjoint_image, false);
+    if (adjoint_img.width != cam.width || adjoint_img.height != cam.height || adjoint_img.channels != 3)
+      throw file_error(adjoint_image, "adjoint image must be " + std::to_string(cam.width) + "x" +
+                                          std::to_string(cam.height) + " RGB");
+    rq.adjoint_image = &adjoint_img;
+  }
+  return rq;
+}
+
+}  // namespace
+
+int cmd_grad(SceneFlags& f, const GradFlags& g) {
+  auto limit = thread_limit(f.threads);
+  auto scene = f.load();
+  Image target, adjoint;
+  GradientRequest rq = make_request(f, *scene, g.method, g.loss, g.target, g.adjoint_image, target, adjoint);
+  if (g.adjoint_seed) rq.adjoint_seed = *g.adjoint_seed;
+  if (!g.memory_budget.empty()) rq.memory_budget = parse_memory_size(g.memory_budget);
+  scene->params.require_grad(g.params);
+  GradientResult r = compute_gradient(*scene, rq);
+  write_gradient_outputs(*scene, rq, r, g.out);
+  std::fprintf(stderr, "grad: %s, %s %.6g, primal %.2f s, adjoint %.2f s -> %s\n", method_name(rq.method),
+               rq.adjoint_image ? "functional" : loss_name(rq.loss), r.loss, r.primal_seconds, r.adjoint_seconds,
+               g.out.c_str());
+  return 0;
+}
+
+int cmd_check(SceneFlags& f, const CheckFlags& c) {
+  auto limit = thread_limit(f.threads);
+  auto scene = f.load();
+  Image target, adjoint;
+  GradientRequest rq = make_request(f, *scene, c.method, c.loss, c.target, c.adjoint_image, target, adjoint);
+  if (c.directions < 1) throw InputError("--directions must be ≥ 1");
+  if (!(c.eps > 0)) throw InputError("--eps must be > 0");
+  auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed);
+  std::printf("%-4s %16s %16s %12s\n", "dir", "adjoint", "finite_diff", "rel_error");
+  bool ok = true;
+  for (size_t i = 0; i < rows.size(); ++i) {
+    std::printf("%-4zu %16.8e %16.8e %12.3e%s\n", i, rows[i].adjoint, rows[i].finite_difference, rows[i].relative_error,
+                rows[i].relative_error > c.tolerance ? "  FAIL" : "");
+    ok = ok && rows[i].relative_error <= c.tolerance;
+  }
+  std::printf("%s: %zu direction(s), tolerance %.3g\n", ok ? "ok" : "FAILED", rows.size(), c.tolerance);
+  return ok ? 0 : 1;
+}
+
+namespace {
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"backlight: a differentiable path tracer with radiative backpropagation"};
+  app.require_subcommand(1);
+  app.set_help_all_flag("--help-all", "Help for every command");
+
+  SceneFlags render_flags, params_flags, grad_flags, check_flags;
+  std::string output;
+  auto* render_cmd = app.add_subcommand("render", "Render an image (path tracer, NEE + MIS)");
+  render_flags.add_to(render_cmd);
+  render_cmd->add_option("-o,--output", output, "Output image (.exr float or .png sRGB)")->required();
+
+  bool as_json = false;
+  std::string dump;
+  auto* params_cmd = app.add_subcommand("params", "List the scene's differentiable parameters");
+  params_flags.add_to(params_cmd);
+  params_cmd->add_flag("--json", as_json, "Print a JSON array of {name, shape, size}");
+  params_cmd->add_option("--dump", dump, "Write every value: image-shaped ones as DIR/<name>.exr, the rest in DIR/params.json");
+
+  GradFlags gf;
+  auto* grad_cmd = app.add_subcommand(
+      "grad",
+      "Gradient of an image loss (or of a linear functional) with respect to scene parameters.\n"
+      "--adjoint-seed defaults to --seed, so by default the written gradient is the exact derivative of\n"
+      "the estimator whose loss is reported (same random numbers).");
+  grad_flags.add_to(grad_cmd);
+  gf.add_to(grad_cmd);
+
+  CheckFlags cf;
+  auto* check_cmd = app.add_subcommand(
+      "check", "Compare adjoint directional derivatives with central finite differences of the primal renderer");
+  check_flags.add_to(check_cmd);
+  cf.add_to(check_cmd);
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForAllHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    std::fprintf(stderr, "backlight: %s (see --help)\n", e.what());
+    return 2;
+  }
+  try {
+    if (*render_cmd) return cmd_render(render_flags, output);
+    if (*params_cmd) return cmd_params(params_flags, as_json, dump);
+    if (*grad_cmd) return cmd_grad(grad_flags, gf);
+    if (*check_cmd) return cmd_check(check_flags, cf);
+  } catch (const InputError& e) {
+    std::fprintf(stderr, "backlight: %s\n", e.what());
+    return 2;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "backlight: internal error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}
