@@ -42,7 +42,8 @@ struct CheckRow {
   double relative_error = 0;
 };
 
-// For `directions` random unit directions v in the parameter's space (seeded, reproducible),
+// For `directions` random directions v with i.i.d. standard-normal elements (seeded,
+// reproducible), steps ±eps·v,
 // compares the adjoint with central differences at the same seed. Sampling distributions that
 // depend on parameters (environment importance sampling) are held fixed, so both sides
 // differentiate the same estimator.

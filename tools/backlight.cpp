@@ -167,7 +167,7 @@ struct CheckFlags {
     app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
     app->add_option("--param", param, "Parameter to check")->required();
     app->add_option("--directions", directions, "Number of random directions (default 4)");
-    app->add_option("--eps", eps, "Finite-difference step along each unit direction (default 1e-2)");
+    app->add_option("--eps", eps, "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (default 1e-2)");
     app->add_option("--tolerance", tolerance, "Largest accepted relative error; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
@@ -223,6 +223,13 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   GradientRequest rq = make_request(f, *scene, c.method, c.loss, c.target, c.adjoint_image, target, adjoint);
   if (c.directions < 1) throw InputError("--directions must be ≥ 1");
   if (!(c.eps > 0)) throw InputError("--eps must be > 0");
+  if (scene->settings.rr_depth > 0 &&
+      (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))
+    std::fprintf(stderr,
+                 "note: Russian roulette is on (--rr-depth %d). Its continuation probability depends on the path\n"
+                 "throughput; same-seed differences see that dependence, the adjoint treats it as a constant\n"
+                 "(it vanishes in expectation). Use --rr-depth 0 for a tight comparison.\n",
+                 scene->settings.rr_depth);
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed);
   std::printf("%-4s %16s %16s %12s\n", "dir", "adjoint", "finite_diff", "rel_error");
   bool ok = true;

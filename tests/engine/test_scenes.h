@@ -1,0 +1,75 @@
+#pragma once
+// Small scenes generated at test time (into a temporary folder), so gradient tests exercise every
+// kernel kind: bitmap and constant textures, diffuse/conductor/plastic BSDFs, an area light and
+// an importance-sampled environment map, with NEE, MIS and Russian roulette all active.
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "engine/image_io.h"
+
+namespace bl::test {
+
+inline std::string temp_dir(const std::string& name) {
+  auto dir = std::filesystem::temp_directory_path() / ("backlight-test-" + name + "-" + std::to_string(::getpid()));
+  std::filesystem::create_directories(dir);
+  return dir.string();
+}
+
+struct OpenSceneOptions {
+  int resolution = 32;
+  int max_depth = 5;
+  int rr_depth = 2;
+  bool environment = true;
+  bool area_light = true;
+};
+
+// A textured floor with a plastic and a conductor cube under a small area light and a sky map.
+inline std::string write_open_scene(const std::string& dir, const OpenSceneOptions& o = {}) {
+  // 16x16 floor texture with structure, 16x8 sky with a bright "sun" texel block.
+  Image floor(16, 16, 3);
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 16; ++x) {
+      floor.at(x, y, 0) = 0.2f + 0.6f * float(x) / 15.f;
+      floor.at(x, y, 1) = ((x / 4 + y / 4) % 2) ? 0.7f : 0.25f;
+      floor.at(x, y, 2) = 0.3f + 0.3f * std::sin(float(y));
+    }
+  write_image(dir + "/floor.exr", floor);
+  Image sky(16, 8, 3);
+  for (int y = 0; y < 8; ++y)
+    for (int x = 0; x < 16; ++x)
+      for (int c = 0; c < 3; ++c) sky.at(x, y, c) = 0.3f + 0.1f * float(c) + ((x == 5 && y == 2) ? 20.f : 0.f);
+  write_image(dir + "/sky.exr", sky);
+  std::string r = std::to_string(o.resolution);
+  std::string json = R"({
+  "integrator": {"spp": 4, "max_depth": )" + std::to_string(o.max_depth) + R"(, "rr_depth": )" +
+                     std::to_string(o.rr_depth) + R"(, "seed": 3},
+  "cameras": [{"origin": [0, 1.6, 4], "target": [0, 0, 0], "fov": 50, "resolution": [)" + r + "," + r + R"(]}],
+  "materials": {
+    "floor": {"type": "diffuse", "albedo": {"type": "bitmap", "file": "floor.exr", "wrap": "repeat"}},
+    "plastic": {"type": "roughplastic", "albedo": [0.2, 0.4, 0.7], "roughness": 0.3},
+    "metal": {"type": "roughconductor", "specular": [0.9, 0.7, 0.4], "roughness": 0.25},
+    "white": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}
+  },
+  "shapes": [
+    {"name": "floor", "type": "rectangle", "material": "floor",
+     "transform": {"scale": 2, "rotate": {"axis": [1, 0, 0], "angle": -90}}},
+    {"name": "box", "type": "cube", "material": "plastic",
+     "transform": {"scale": 0.4, "rotate": {"axis": [0, 1, 0], "angle": 30}, "translate": [-0.6, 0.4, 0]}},
+    {"name": "ball", "type": "cube", "material": "metal",
+     "transform": {"scale": 0.35, "rotate": {"axis": [1, 1, 0], "angle": 40}, "translate": [0.7, 0.45, 0.3]}})" +
+                     (o.area_light ? R"(,
+    {"name": "light", "type": "rectangle", "material": "white", "emitter": {"radiance": [6, 5, 4]},
+     "transform": {"scale": 0.4, "rotate": {"axis": [1, 0, 0], "angle": 90}, "translate": [0, 2.2, 0]}})"
+                                   : "") +
+                     R"(
+  ])" + (o.environment ? R"(,
+  "environment": {"type": "envmap", "file": "sky.exr", "scale": 1})"
+                       : "") +
+                     "\n}\n";
+  std::ofstream(dir + "/scene.json") << json;
+  return dir + "/scene.json";
+}
+
+}  // namespace bl::test
