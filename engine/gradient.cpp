@@ -44,7 +44,7 @@ double functional(const Image& a, const Image& img) {
 }  // namespace
 
 GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
-  scene.params.zero_grad();
+  if (!rq.accumulate) scene.params.zero_grad();
   GradientResult result;
   const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
   const double values = double(cam.width) * double(cam.height) * 3.0;

@@ -21,6 +21,7 @@ struct GradientRequest {
   PassOptions pass;                      // camera, spp, seed of the primal (loss) render
   uint64_t adjoint_seed = 0;             // seed of the adjoint pass (equal: exact derivative)
   size_t memory_budget = 0;              // taped mode only: bytes (0 = 80% of physical memory)
+  bool accumulate = false;               // add to the grad buffers instead of zeroing them first
 };
 
 struct GradientResult {

@@ -59,6 +59,11 @@ void Progress::finish() {
   if (enabled_) print(done_.load(), true);
 }
 
+void Progress::set_note(const std::string& note) {
+  std::lock_guard<std::mutex> lock(print_mutex_);
+  note_ = note;
+}
+
 void Progress::print(uint64_t done, bool final) {
   std::lock_guard<std::mutex> lock(print_mutex_);
   double t = elapsed();
@@ -69,9 +74,9 @@ void Progress::print(uint64_t done, bool final) {
   int filled = int(fraction * width);
   std::string bar(size_t(filled), '=');
   if (filled < width) bar += '>', bar += std::string(size_t(width - filled - 1), ' ');
-  std::fprintf(stderr, "%s%s [%s] %5.1f%% %s%s/s  %s %s%s", tty_ ? "\r" : "", label_.c_str(), bar.c_str(),
-               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), final ? "elapsed" : "ETA",
-               human_seconds(final ? t : eta).c_str(), (final || !tty_) ? "\n" : "");
+  std::fprintf(stderr, "%s%s [%s] %5.1f%% %s%s/s %s %s %s%s", tty_ ? "\r" : "", label_.c_str(), bar.c_str(),
+               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), note_.c_str(), final ? "elapsed" : "ETA",
+               human_seconds(final ? t : eta).c_str(), (final || !tty_) ? "\n" : "\033[K");
   std::fflush(stderr);
 }
 

@@ -16,6 +16,7 @@ class Progress {
   ~Progress();
   void advance(uint64_t n);
   void finish();  // prints the final state and a newline
+  void set_note(const std::string& note);  // extra text after the rate (e.g. the current loss)
   double elapsed() const;
 
  private:
@@ -27,6 +28,7 @@ class Progress {
   std::chrono::steady_clock::time_point start_;
   std::atomic<int64_t> last_print_ns_{0};
   std::mutex print_mutex_;
+  std::string note_;
 };
 
 // "1.23 M" style formatting for rates and counts.

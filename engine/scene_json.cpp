@@ -10,108 +10,13 @@
 
 #include "engine/errors.h"
 #include "engine/image_io.h"
+#include "engine/json_node.h"
 #include "engine/scene_load.h"
 
 namespace bl {
 
 namespace fs = std::filesystem;
-using nlohmann::json;
-
 namespace {
-
-// A JSON object being read: remembers which keys were consumed so leftovers can be reported.
-class Node {
- public:
-  Node(const json& j, std::string pointer, const std::string& file) : j_(j), ptr_(std::move(pointer)), file_(file) {
-    if (!j_.is_object()) fail("expected an object");
-  }
-  [[noreturn]] void fail(const std::string& msg) const { throw file_error(file_, (ptr_.empty() ? "/" : ptr_) + ": " + msg); }
-  [[noreturn]] void fail_at(const std::string& key, const std::string& msg) const {
-    throw file_error(file_, ptr_ + "/" + key + ": " + msg);
-  }
-  bool has(const std::string& key) const { return j_.contains(key); }
-  const json& at(const std::string& key) {
-    if (!j_.contains(key)) fail("missing required key '" + key + "'");
-    used_.insert(key);
-    return j_.at(key);
-  }
-  const json* find(const std::string& key) {
-    if (!j_.contains(key)) return nullptr;
-    used_.insert(key);
-    return &j_.at(key);
-  }
-  Node child(const std::string& key) { return Node(at(key), ptr_ + "/" + key, file_); }
-  std::string pointer(const std::string& key) const { return ptr_ + "/" + key; }
-  const std::string& file() const { return file_; }
-  // Reports the first key nobody read.
-  void finish() const {
-    for (auto it = j_.begin(); it != j_.end(); ++it)
-      if (!used_.count(it.key())) fail("unknown key '" + it.key() + "'");
-  }
-
-  double number(const std::string& key, double fallback, double lo = -1e30, double hi = 1e30) {
-    const json* v = find(key);
-    if (!v) return fallback;
-    return checked_number(*v, key, lo, hi);
-  }
-  double number_required(const std::string& key, double lo = -1e30, double hi = 1e30) {
-    return checked_number(at(key), key, lo, hi);
-  }
-  double checked_number(const json& v, const std::string& key, double lo, double hi) const {
-    if (!v.is_number()) fail_at(key, "expected a number");
-    double d = v.get<double>();
-    if (!std::isfinite(d)) fail_at(key, "not a finite number");
-    if (d < lo || d > hi) {
-      std::ostringstream s;
-      s << "value " << d << " outside the valid range [" << lo << ", " << hi << "]";
-      fail_at(key, s.str());
-    }
-    return d;
-  }
-  bool boolean(const std::string& key, bool fallback) {
-    const json* v = find(key);
-    if (!v) return fallback;
-    if (!v->is_boolean()) fail_at(key, "expected true or false");
-    return v->get<bool>();
-  }
-  std::string string(const std::string& key) {
-    const json& v = at(key);
-    if (!v.is_string()) fail_at(key, "expected a string");
-    return v.get<std::string>();
-  }
-  std::string string(const std::string& key, const std::string& fallback) { return has(key) ? string(key) : fallback; }
-  Vec3f vec3(const std::string& key) { return vec3_of(at(key), pointer(key)); }
-  Vec3f vec3(const std::string& key, Vec3f fallback) { return has(key) ? vec3(key) : fallback; }
-  Vec3f vec3_of(const json& v, const std::string& where) const {
-    if (!v.is_array() || v.size() != 3) throw file_error(file_, where + ": expected [x, y, z]");
-    Vec3f r;
-    for (int i = 0; i < 3; ++i) {
-      if (!v[size_t(i)].is_number()) throw file_error(file_, where + ": expected numbers");
-      r[i] = v[size_t(i)].get<float>();
-      if (!std::isfinite(r[i])) throw file_error(file_, where + ": not a finite number");
-    }
-    return r;
-  }
-
- private:
-  const json& j_;
-  std::string ptr_;
-  const std::string& file_;
-  std::set<std::string> used_;
-};
-
-std::string line_col(const std::string& text, size_t byte) {
-  size_t line = 1, col = 1;
-  for (size_t i = 0; i < std::min(byte, text.size()); ++i) {
-    if (text[i] == '\n') {
-      ++line;
-      col = 1;
-    } else {
-      ++col;
-    }
-  }
-  return std::to_string(line) + ":" + std::to_string(col > 1 ? col - 1 : 1);
-}
 
 struct Loader {
   std::string file;
@@ -402,14 +307,7 @@ std::unique_ptr<Scene> load_json_scene(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   if (!f) throw file_error(path, "cannot open");
   std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
-  json root;
-  try {
-    root = json::parse(text);
-  } catch (const json::parse_error& e) {
-    std::string msg = e.what();
-    if (auto p = msg.find("parse error"); p != std::string::npos) msg = msg.substr(p);
-    throw file_error(path, line_col(text, e.byte) + ": malformed JSON (" + msg + ")");
-  }
+  json root = parse_json_text(text, path);
   auto scene = std::make_unique<Scene>();
   scene->source = path;
   Loader loader{path, fs::path(path).parent_path(), *scene};

@@ -17,6 +17,7 @@
 #include "engine/taped.h"
 #include "engine/image_io.h"
 #include "engine/loss.h"
+#include "engine/optimizer.h"
 #include "engine/progress.h"
 #include "engine/render.h"
 #include "engine/scene_load.h"
@@ -278,6 +279,15 @@ int main(int argc, char** argv) {
   check_flags.add_to(check_cmd);
   cf.add_to(check_cmd);
 
+  std::string config, resume;
+  int opt_threads = 0;
+  bool opt_quiet = false;
+  auto* optimize_cmd = app.add_subcommand("optimize", "Gradient-descent optimization described by a JSON config (see README)");
+  optimize_cmd->add_option("config", config, "Optimization config")->required();
+  optimize_cmd->add_option("--resume", resume, "Continue from the last checkpoint in this output directory");
+  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default: all cores)");
+  optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -293,6 +303,7 @@ int main(int argc, char** argv) {
     if (*params_cmd) return cmd_params(params_flags, as_json, dump);
     if (*grad_cmd) return cmd_grad(grad_flags, gf);
     if (*check_cmd) return cmd_check(check_flags, cf);
+    if (*optimize_cmd) return run_optimize(config, resume, opt_threads, opt_quiet);
   } catch (const InputError& e) {
     std::fprintf(stderr, "backlight: %s\n", e.what());
     return 2;

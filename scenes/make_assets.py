@@ -1,0 +1,470 @@
+#!/usr/bin/python3
+"""Generates the binary assets of the example scenes.
+
+    scenes/cornell/wall.png      1024x1024 RGB albedo texture of the Cornell box's back wall
+    scenes/gltf/checker.png      256x256 RGB base-colour texture of the glTF ground plane
+    scenes/gltf/scene.gltf/.bin  a small glTF 2.0 scene (ground, two cubes, emissive quad, camera)
+
+Deterministic and idempotent: runs from any working directory, writes a file only when its bytes
+change, and reads every output back to check it. Needs Debian's python3 with numpy and matplotlib
+(Pillow, a matplotlib dependency, writes the RGB PNGs).
+"""
+
+import io
+import json
+import math
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+import matplotlib
+
+matplotlib.use("Agg")
+matplotlib.rcdefaults()  # ignore any user matplotlibrc: the output must not depend on it
+import matplotlib.image as mpimg  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.patches import Circle, Polygon, Rectangle, Wedge  # noqa: E402
+from PIL import Image  # noqa: E402
+
+SCENES = Path(__file__).resolve().parent
+CORNELL = SCENES / "cornell"
+GLTF = SCENES / "gltf"
+
+# Albedo range: every 8-bit sRGB value stays in [LO, HI], i.e. about 0.05 .. 0.84 linear.
+LO, HI = 64, 235
+
+
+def srgb_to_linear(c):
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def write_if_changed(path, data):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.exists() and path.read_bytes() == data:
+        print(f"unchanged {path.relative_to(SCENES.parent)} ({len(data)} bytes)")
+        return
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+    print(f"wrote     {path.relative_to(SCENES.parent)} ({len(data)} bytes)")
+
+
+def png_bytes(rgb):
+    """RGB uint8 array (row 0 = top) -> PNG file bytes, without timestamps or other metadata."""
+    assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
+    buf = io.BytesIO()
+    Image.fromarray(rgb, "RGB").save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def render_figure(size, draw):
+    """Draws with matplotlib (Agg) on a size x size pixel canvas whose data coordinates are pixel
+    coordinates, x right and y down (row 0 = top), and returns the clamped RGB uint8 image."""
+    dpi = 128
+    fig = Figure(figsize=(size / dpi, size / dpi), dpi=dpi)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_axis_off()
+    ax.set_xlim(0, size)
+    ax.set_ylim(size, 0)
+    ax.set_autoscale_on(False)
+    draw(ax)
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    assert rgba.shape == (size, size, 4), rgba.shape
+    return np.clip(rgba[:, :, :3], LO, HI).astype(np.uint8)
+
+
+def c8(hexstr):
+    """'#rrggbb' -> matplotlib colour, checked to lie in the albedo range."""
+    v = [int(hexstr[i:i + 2], 16) for i in (1, 3, 5)]
+    assert all(LO <= x <= HI for x in v), hexstr
+    return tuple(x / 255 for x in v)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cornell box back wall
+# ----------------------------------------------------------------------------------------------
+
+BG = c8("#e6dcc8")      # warm paper
+INK = c8("#404a7a")     # dark navy text
+INK2 = c8("#7a4a40")    # dark brown text
+PALETTE = [c8(h) for h in ("#c84646", "#e09a40", "#dcc850", "#5aa050", "#4088c0", "#7a5ab4", "#c860a0")]
+
+
+def draw_wall(ax):
+    W = 1024
+    text = dict(family="DejaVu Sans", ha="center", va="center")
+    ax.add_patch(Rectangle((0, 0), W, W, color=BG, lw=0))
+
+    # Top: hue gradient band (a smooth ramp through the palette), then a grey ramp below it.
+    ramp = np.linspace(0, len(PALETTE) - 1, W)
+    cols = np.array(PALETTE)
+    lo = np.floor(ramp).astype(int).clip(0, len(PALETTE) - 2)
+    t = (ramp - lo)[:, None]
+    band = (1 - t) * cols[lo] + t * cols[lo + 1]
+    ax.imshow(band[None, :, :], extent=(0, W, 64, 0), interpolation="bilinear", aspect="auto", zorder=2)
+    grey = np.linspace(LO / 255, HI / 255, W)
+    ax.imshow(np.repeat(grey[None, :, None], 3, axis=2), extent=(0, W, 88, 64), interpolation="bilinear",
+              aspect="auto", zorder=2)
+
+    # Title and text lines (the upper half stays visible behind the objects in the box).
+    ax.text(W / 2, 205, "backlight", fontsize=100, weight="bold", color=INK, **text)
+    ax.text(W / 2, 322, "differentiable path tracing", fontsize=34, color=INK2, **text)
+    ax.text(W / 2, 380, "wall.albedo  \u00b7  1024 \u00d7 1024  \u00b7  row 0 at the top", fontsize=22,
+            color=INK, **text)
+    ax.text(W / 2, 420, "ABCDEFGHIJKLMNOPQRSTUVWXYZ  0123456789", fontsize=20, family="DejaVu Sans Mono",
+            color=INK2, ha="center", va="center")
+    ax.add_patch(Rectangle((112, 446), W - 224, 6, color=INK, lw=0))
+
+    # Middle: resolution bars (vertical, then horizontal) of 32, 16, 8, 4 and 2 pixel periods.
+    x0, y0, h = 64, 476, 150
+    for period in (32, 16, 8, 4, 2):
+        for k in range(0, 64, period):
+            ax.add_patch(Rectangle((x0 + k, y0), period / 2, h, color=INK, lw=0))
+        x0 += 64 + 12
+    y = y0
+    for period in (16, 8, 4):
+        for k in range(0, 48, period):
+            ax.add_patch(Rectangle((x0, y + k), 64, period / 2, color=INK2, lw=0))
+        y += 48 + 3
+
+    # Middle right: coloured shapes.
+    ax.add_patch(Circle((610, 551), 64, color=PALETTE[0], lw=0))
+    ax.add_patch(Polygon([(700, 616), (770, 486), (840, 616)], closed=True, color=PALETTE[3], lw=0))
+    ax.add_patch(Rectangle((866, 486), 130, 130, color=PALETTE[4], lw=0))
+    ax.add_patch(Circle((931, 551), 38, color=PALETTE[2], lw=0))
+    ax.add_patch(Wedge((610, 551), 40, 20, 160, color=PALETTE[2], lw=0))
+
+    # Bottom centre: an 11x11 checker with a marked corner; bottom sides: stripes and colour patches.
+    cx, cy, n, s = 336, 656, 11, 32
+    for i in range(n):
+        for j in range(n):
+            ax.add_patch(Rectangle((cx + j * s, cy + i * s), s, s, lw=0,
+                                   color=INK if (i + j) % 2 == 0 else c8("#d2c8b4")))
+    ax.add_patch(Rectangle((cx, cy), 2 * s, 2 * s, color=PALETTE[0], lw=0))
+    ax.add_patch(Rectangle((cx + (n - 2) * s, cy + (n - 2) * s), 2 * s, 2 * s, color=PALETTE[4], lw=0))
+    for k, col in enumerate(PALETTE):  # diagonal stripes on the left
+        ax.add_patch(Polygon([(0, 680 + 52 * k), (280, 630 + 52 * k), (280, 656 + 52 * k), (0, 706 + 52 * k)],
+                             closed=True, color=col, lw=0))
+    for k, col in enumerate(PALETTE[::-1]):  # colour patches with labels on the right
+        yk = 656 + 52 * k
+        ax.add_patch(Rectangle((744, yk), 216, 44, color=col, lw=0))
+        ax.text(852, yk + 22, f"albedo {k + 1}", fontsize=15, color=c8("#ebe6dc") if k % 2 else INK, **text)
+
+
+def make_wall():
+    img = render_figure(1024, draw_wall)
+    data = png_bytes(img)
+    path = CORNELL / "wall.png"
+    write_if_changed(path, data)
+    back = mpimg.imread(path)  # float32 in [0, 1]
+    assert back.shape == (1024, 1024, 3), back.shape
+    assert np.array_equal(np.round(back * 255).astype(np.uint8), img)
+    lin = srgb_to_linear(back)
+    print(f"          wall.png linear albedo in [{lin.min():.3f}, {lin.max():.3f}]")
+    assert 0.04 < lin.min() and lin.max() < 0.86
+    assert len(data) < 600_000, len(data)
+
+
+# ----------------------------------------------------------------------------------------------
+# glTF scene
+# ----------------------------------------------------------------------------------------------
+
+def draw_checker(ax):
+    S, n = 256, 8
+    s = S / n
+    a, b = c8("#c8beaa"), c8("#5a6e8c")
+    for i in range(n):
+        for j in range(n):
+            ax.add_patch(Rectangle((j * s, i * s), s, s, color=a if (i + j) % 2 == 0 else b, lw=0))
+    # Orientation marks: a red "F" in the top-left tile pair and a yellow disc bottom right.
+    red = c8("#c84646")
+    ax.add_patch(Rectangle((6, 6), 8, 52, color=red, lw=0))
+    ax.add_patch(Rectangle((6, 6), 40, 8, color=red, lw=0))
+    ax.add_patch(Rectangle((6, 28), 28, 8, color=red, lw=0))
+    ax.add_patch(Circle((S - s / 2, S - s / 2), s / 3, color=c8("#dcc850"), lw=0))
+    ax.text(S / 2, S / 2, "glTF", fontsize=26, weight="bold", family="DejaVu Sans", ha="center", va="center",
+            color=c8("#e6dcc8"),
+            bbox=dict(boxstyle="round,pad=0.2", fc=c8("#7a4a40"), ec="none"))
+
+
+def quat_axis_angle(axis, degrees):
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    h = math.radians(degrees) / 2
+    return [float(a[0] * math.sin(h)), float(a[1] * math.sin(h)), float(a[2] * math.sin(h)), float(math.cos(h))]
+
+
+def quat_to_matrix(q):
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def quat_look_at(eye, target, up=(0.0, 1.0, 0.0)):
+    """Rotation taking the camera's local -Z to (target - eye) and local +Y towards up."""
+    f = np.asarray(target, float) - np.asarray(eye, float)
+    zc = -f / np.linalg.norm(f)
+    xc = np.cross(up, zc)
+    xc /= np.linalg.norm(xc)
+    yc = np.cross(zc, xc)
+    m = np.stack([xc, yc, zc], axis=1)  # columns: local axes in world space
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2 * math.sqrt(tr + 1)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:  # not needed for the camera below; kept simple on purpose
+        raise ValueError("look-at rotation too close to 180 degrees")
+    return [float(v) for v in q]
+
+
+def quad_mesh(size_u, size_v, uv_repeat=1.0):
+    """A quad in the xz plane (y = 0) facing +y, centred at the origin. uv: u along +x, v along +z
+    (glTF's v = 0 is the first image row, which thus lies at the far -z edge)."""
+    hu, hv = size_u / 2, size_v / 2
+    pos = np.array([[-hu, 0, -hv], [-hu, 0, hv], [hu, 0, hv], [hu, 0, -hv]], np.float32)
+    nrm = np.tile(np.array([0, 1, 0], np.float32), (4, 1))
+    uv = np.array([[0, 0], [0, 1], [1, 1], [1, 0]], np.float32) * np.float32(uv_repeat)
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)  # counter-clockwise seen from +y
+    return pos, nrm, uv, idx
+
+
+def cube_mesh():
+    """The cube [-0.5, 0.5]^3 with 24 vertices, flat outward normals and a full uv square per face."""
+    faces = [((1, 0, 0), (0, 0, -1), (0, 1, 0)), ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+             ((0, 1, 0), (1, 0, 0), (0, 0, -1)), ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+             ((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (-1, 0, 0), (0, 1, 0))]
+    pos, nrm, uv, idx = [], [], [], []
+    for n, a, b in faces:
+        n, a, b = (np.array(v, np.float64) for v in (n, a, b))
+        assert np.allclose(np.cross(a, b), n)
+        base = len(pos)
+        for cu, cv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+            pos.append(0.5 * (n + cu * a + cv * b))
+            nrm.append(n)
+            uv.append(((cu + 1) / 2, (1 - cv) / 2))
+        idx += [base + i for i in (0, 1, 2, 0, 2, 3)]
+    return (np.array(pos, np.float32), np.array(nrm, np.float32), np.array(uv, np.float32),
+            np.array(idx, np.uint16))
+
+
+class GltfBuilder:
+    def __init__(self):
+        self.bin = bytearray()
+        self.doc = {"bufferViews": [], "accessors": []}
+
+    def _view(self, data, target):
+        while len(self.bin) % 4:
+            self.bin.append(0)
+        self.doc["bufferViews"].append({"buffer": 0, "byteOffset": len(self.bin), "byteLength": len(data),
+                                        "target": target})
+        self.bin += data
+        return len(self.doc["bufferViews"]) - 1
+
+    def accessor(self, array, kind):
+        array = np.ascontiguousarray(array)
+        if kind == "indices":
+            assert array.dtype in (np.uint16, np.uint32) and array.ndim == 1
+            view = self._view(array.astype(array.dtype.newbyteorder("<")).tobytes(), 34963)  # ELEMENT_ARRAY_BUFFER
+            acc = {"bufferView": view, "byteOffset": 0, "componentType": 5123 if array.dtype == np.uint16 else 5125,
+                   "count": int(array.size), "type": "SCALAR"}
+        else:
+            assert array.dtype == np.float32 and array.ndim == 2 and array.shape[1] in (2, 3)
+            view = self._view(array.astype("<f4").tobytes(), 34962)  # ARRAY_BUFFER
+            acc = {"bufferView": view, "byteOffset": 0, "componentType": 5126, "count": int(array.shape[0]),
+                   "type": "VEC%d" % array.shape[1]}
+            if kind == "POSITION":  # required by the spec; exact float32 values
+                acc["min"] = [float(v) for v in array.min(axis=0)]
+                acc["max"] = [float(v) for v in array.max(axis=0)]
+        self.doc["accessors"].append(acc)
+        return len(self.doc["accessors"]) - 1
+
+    def primitive(self, mesh, material):
+        pos, nrm, uv, idx = mesh
+        return {"attributes": {"POSITION": self.accessor(pos, "POSITION"), "NORMAL": self.accessor(nrm, "NORMAL"),
+                               "TEXCOORD_0": self.accessor(uv, "TEXCOORD_0")},
+                "indices": self.accessor(idx, "indices"), "material": material, "mode": 4}
+
+
+def r6(v):
+    return [round(float(x), 6) + 0.0 for x in v]  # + 0.0 turns -0.0 into 0.0
+
+
+def make_gltf():
+    checker = render_figure(256, draw_checker)
+    write_if_changed(GLTF / "checker.png", png_bytes(checker))
+
+    b = GltfBuilder()
+    ground = b.primitive(quad_mesh(8.0, 8.0, uv_repeat=4.0), 0)
+    cube = cube_mesh()
+    gold = b.primitive(cube, 1)
+    plastic = b.primitive(cube, 2)
+    light = b.primitive(quad_mesh(1.0, 1.0), 3)
+
+    eye, target = [0.0, 2.4, 5.6], [0.0, 0.5, -0.4]
+    cam_q = quat_look_at(eye, target)
+    doc = {
+        "asset": {"version": "2.0", "generator": "backlight scenes/make_assets.py",
+                  "extras": {"note": "Generated by scenes/make_assets.py; do not edit by hand."}},
+        "scene": 0,
+        "scenes": [{"name": "scene", "nodes": [0, 1, 4, 5]}],
+        "nodes": [
+            {"name": "ground", "mesh": 0},
+            {"name": "objects", "translation": [0.0, 0.0, -0.5], "children": [2, 3]},
+            {"name": "gold_cube", "mesh": 1, "translation": [-0.9, 0.5, 0.0],
+             "rotation": r6(quat_axis_angle([0, 1, 0], 30.0))},
+            {"name": "plastic_box", "mesh": 2, "translation": [0.9, 0.7, 0.3],
+             "rotation": r6(quat_axis_angle([0, 1, 0], -20.0)), "scale": [0.8, 1.4, 0.8]},
+            # The light quad faces +y in its mesh; the node turns it upside down (180 degrees about
+            # x), scales it to 2.5 x 2.5 and lifts it to y = 3.2, so it emits downwards.
+            {"name": "light", "mesh": 3, "translation": [0.0, 3.2, 0.0],
+             "rotation": [1.0, 0.0, 0.0, 0.0], "scale": [2.5, 1.0, 2.5]},
+            {"name": "camera", "camera": 0, "translation": eye, "rotation": r6(cam_q)},
+        ],
+        "cameras": [{"name": "camera", "type": "perspective",
+                     "perspective": {"yfov": round(math.radians(40.0), 6), "aspectRatio": 4 / 3,
+                                     "znear": 0.05, "zfar": 100.0}}],
+        "meshes": [{"name": "ground", "primitives": [ground]},
+                   {"name": "gold_cube", "primitives": [gold]},
+                   {"name": "plastic_box", "primitives": [plastic]},
+                   {"name": "light", "primitives": [light]}],
+        "materials": [
+            {"name": "ground",
+             "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                                      "metallicFactor": 0.0, "roughnessFactor": 0.9}},
+            {"name": "gold",
+             "pbrMetallicRoughness": {"baseColorFactor": [1.0, 0.78, 0.34, 1.0], "metallicFactor": 1.0,
+                                      "roughnessFactor": 0.3}},
+            {"name": "blue_plastic",
+             "pbrMetallicRoughness": {"baseColorFactor": [0.1, 0.3, 0.8, 1.0], "metallicFactor": 0.0,
+                                      "roughnessFactor": 0.5}},
+            {"name": "lamp",
+             "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1.0], "metallicFactor": 0.0,
+                                      "roughnessFactor": 1.0},
+             "emissiveFactor": [1.0, 1.0, 1.0],
+             "extras": {"note": "backlight uses emissiveFactor (times KHR_materials_emissive_strength, "
+                                "absent here) as the emitted radiance, as is; glTF caps emissiveFactor at 1."}},
+        ],
+        "textures": [{"sampler": 0, "source": 0}],
+        "images": [{"uri": "checker.png", "mimeType": "image/png"}],
+        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}],
+        "buffers": [{"uri": "scene.bin", "byteLength": 0}],
+    }
+    while len(b.bin) % 4:
+        b.bin.append(0)
+    doc["bufferViews"] = b.doc["bufferViews"]
+    doc["accessors"] = b.doc["accessors"]
+    doc["buffers"][0]["byteLength"] = len(b.bin)
+    text = json.dumps(doc, indent=1) + "\n"
+    write_if_changed(GLTF / "scene.bin", bytes(b.bin))
+    write_if_changed(GLTF / "scene.gltf", text.encode())
+    check_gltf(GLTF / "scene.gltf")
+
+
+# ----------------------------------------------------------------------------------------------
+# glTF read-back checks
+# ----------------------------------------------------------------------------------------------
+
+COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+DTYPES = {5121: np.dtype("u1"), 5123: np.dtype("<u2"), 5125: np.dtype("<u4"), 5126: np.dtype("<f4")}
+
+
+def check_gltf(path):
+    doc = json.loads(path.read_text())
+    assert doc["asset"]["version"] == "2.0"
+    buffers = []
+    for buf in doc["buffers"]:
+        data = (path.parent / buf["uri"]).read_bytes()
+        assert len(data) == buf["byteLength"], (len(data), buf["byteLength"])
+        buffers.append(data)
+    for v in doc["bufferViews"]:
+        assert v["byteOffset"] % 4 == 0 and v["byteLength"] > 0
+        assert v["byteOffset"] + v["byteLength"] <= len(buffers[v["buffer"]])
+        assert v["target"] in (34962, 34963) and "byteStride" not in v
+
+    def read(ai):
+        a = doc["accessors"][ai]
+        v = doc["bufferViews"][a["bufferView"]]
+        dt, nc = DTYPES[a["componentType"]], COMPONENTS[a["type"]]
+        off = v["byteOffset"] + a.get("byteOffset", 0)
+        assert off % dt.itemsize == 0
+        assert a.get("byteOffset", 0) + a["count"] * nc * dt.itemsize <= v["byteLength"]
+        arr = np.frombuffer(buffers[v["buffer"]], dtype=dt, count=a["count"] * nc, offset=off)
+        return a, v, arr.reshape(a["count"], nc) if nc > 1 else arr
+
+    for mesh in doc["meshes"]:
+        for p in mesh["primitives"]:
+            assert p.get("mode", 4) == 4
+            apos, vpos, pos = read(p["attributes"]["POSITION"])
+            assert apos["componentType"] == 5126 and apos["type"] == "VEC3" and vpos["target"] == 34962
+            assert apos["min"] == [float(x) for x in pos.min(axis=0)]
+            assert apos["max"] == [float(x) for x in pos.max(axis=0)]
+            anrm, vnrm, nrm = read(p["attributes"]["NORMAL"])
+            auv, vuv, uv = read(p["attributes"]["TEXCOORD_0"])
+            assert anrm["componentType"] == 5126 and anrm["type"] == "VEC3" and vnrm["target"] == 34962
+            assert auv["componentType"] == 5126 and auv["type"] == "VEC2" and vuv["target"] == 34962
+            assert len(pos) == len(nrm) == len(uv)
+            assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-6)
+            aidx, vidx, idx = read(p["indices"])
+            assert aidx["componentType"] in (5123, 5125) and aidx["type"] == "SCALAR" and vidx["target"] == 34963
+            assert aidx["count"] % 3 == 0 and idx.max() < len(pos)
+            tri = idx.reshape(-1, 3)
+            p0, p1, p2 = (pos[tri[:, k]].astype(np.float64) for k in range(3))
+            geo = np.cross(p1 - p0, p2 - p0)  # counter-clockwise winding = front face
+            assert np.all(np.einsum("ij,ij->i", geo, nrm[tri[:, 0]]) > 0), mesh["name"]
+            assert 0 <= p["material"] < len(doc["materials"])
+
+    for m in doc["materials"]:
+        assert m.get("name")
+        assert all(0 <= x <= 1 for x in m.get("emissiveFactor", [0, 0, 0]))
+    for t in doc["textures"]:
+        img = doc["images"][t["source"]]
+        arr = mpimg.imread(path.parent / img["uri"])
+        assert arr.ndim == 3 and arr.shape[2] == 3, arr.shape
+
+    # World transforms: the light must face down, the camera must look at the objects.
+    def local(node):
+        m = np.eye(4)
+        s = np.diag(node.get("scale", [1, 1, 1]))
+        m[:3, :3] = quat_to_matrix(node.get("rotation", [0, 0, 0, 1])) @ s
+        m[:3, 3] = node.get("translation", [0, 0, 0])
+        return m
+
+    world = {}
+
+    def visit(i, parent):
+        world[i] = parent @ local(doc["nodes"][i])
+        for c in doc["nodes"][i].get("children", []):
+            visit(c, world[i])
+
+    for i in doc["scenes"][doc["scene"]]["nodes"]:
+        visit(i, np.eye(4))
+    assert sorted(world) == list(range(len(doc["nodes"]))), "every node must be reachable exactly once"
+    for i, node in enumerate(doc["nodes"]):
+        if "rotation" in node:
+            assert abs(np.linalg.norm(node["rotation"]) - 1) < 1e-6
+        if node.get("name") == "light":
+            n = np.linalg.inv(world[i][:3, :3]).T @ np.array([0, 1, 0])
+            assert np.allclose(n / np.linalg.norm(n), [0, -1, 0]), n
+        if "camera" in node:
+            fwd = world[i][:3, :3] @ np.array([0, 0, -1.0])
+            to_obj = np.array([0.0, 0.5, -0.4]) - world[i][:3, 3]
+            assert np.dot(fwd, to_obj / np.linalg.norm(to_obj)) > 0.9999, fwd
+            assert (world[i][:3, :3] @ np.array([0, 1.0, 0]))[1] > 0.9
+    print(f"          {path.name}: {len(doc['accessors'])} accessors, {len(doc['bufferViews'])} buffer views, "
+          f"{len(doc['meshes'])} meshes, {len(doc['materials'])} materials: OK")
+
+
+def main():
+    make_wall()
+    make_gltf()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
