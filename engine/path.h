@@ -55,7 +55,7 @@ inline Spectrum<float> emitter_adjoint_radiance(const Scene& scene, const Emissi
 
 inline void emitter_backprop(const Scene& scene, const EmissionRef& e, const Vec3f& adjoint, GradientAccumulator& g) {
   if (e.area >= 0)
-    scene.area_emitters[size_t(e.area)].backprop(scene.params, e.uv, adjoint, g);
+    scene.area_emitters[size_t(e.area)].backprop(scene.params, e.uv, 1.f, adjoint, g);  // front side by construction
   else
     scene.environment.backprop(scene.params, e.direction, adjoint, g);
 }

@@ -8,12 +8,14 @@ namespace bl {
 
 inline constexpr float kMinAlpha = 1e-3f;
 
-// D(m) = α² / (π ((α² − 1) cos²θm + 1)²)
+// D(m) = α² / (π (α² cos²θm + sin²θm)²). Written with sin²θm = m.x² + m.y² rather than the
+// textbook (α² − 1) cos²θm + 1, which cancels catastrophically in float near the specular peak
+// at small α (2.6% error at the α clamp).
 template <class T>
 T ggx_distribution(const Vec3f& m, const T& alpha) {
   if (m.z <= 0.f) return T(0.f);
   T a2 = alpha * alpha;
-  T denom = (a2 - 1.f) * (m.z * m.z) + 1.f;
+  T denom = a2 * (m.z * m.z) + (m.x * m.x + m.y * m.y);
   return a2 / (kPi * denom * denom);
 }
 

@@ -23,7 +23,10 @@ struct AreaEmitter {
     if (cos_normal_to_viewer <= 0.f) return Spectrum<T>(T(0.f));
     return radiance.eval<T>(s, uv);
   }
-  void backprop(const ParamStore& s, Vec2f uv, const Vec3f& adjoint, GradientAccumulator& grads) const {
+  // Mirrors eval: no gradient where nothing is emitted (the back side).
+  void backprop(const ParamStore& s, Vec2f uv, float cos_normal_to_viewer, const Vec3f& adjoint,
+                GradientAccumulator& grads) const {
+    if (cos_normal_to_viewer <= 0.f) return;
     radiance.backprop(s, uv, adjoint, grads);
   }
   // pdf in solid angle of hitting this emitter at distance d with cosine cos_emitter.

@@ -99,7 +99,8 @@ float Environment::pdf(const Vec3f& dir) const {
   Vec2f uv = direction_to_uv(dir);
   int col = std::clamp(int(uv.x * float(width)), 0, width - 1);
   int row = std::clamp(int(uv.y * float(height)), 0, height - 1);
-  float sin_theta = std::sqrt(std::max(0.f, 1.f - dir.y * dir.y));
+  // sqrt(x² + z²), not sqrt(1 − y²): the latter rounds to 0 within ~3e-4 rad of the poles.
+  float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
   if (sin_theta <= 0.f) return 0.f;
   float p_uv = rows.pmf[size_t(row)] * cols[size_t(row)].pmf[size_t(col)] * float(width) * float(height);
   return p_uv / (2.f * kPi * kPi * sin_theta);

@@ -1,0 +1,108 @@
+// BSDF samplers against their own pdfs: chi-square goodness of fit over the hemisphere, the pdf
+// each sample reports against pdf(wo, wi), and ∫ pdf dω against the fraction of samples not lost.
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <vector>
+
+#include "tests/kernels/bsdf/bsdf_under_test.h"
+#include "tests/kernels/chi2.h"
+
+using namespace bl;
+using namespace bl::test;
+
+namespace {
+
+constexpr double kDegree = M_PI / 180.0;
+
+// Outgoing directions from normal incidence to grazing, off the x axis so that no bin edge lines
+// up with the lobe's plane of symmetry.
+std::vector<Vec3f> outgoing_directions() {
+  std::vector<Vec3f> result;
+  for (double theta : {0.0, 30.0, 60.0, 80.0, 88.0}) result.push_back(spherical_direction(theta * kDegree, 0.7));
+  return result;
+}
+
+void check_sampler(const BsdfUnderTest& bsdf, const Vec3f& wo, uint64_t seed) {
+  Chi2Options opt;
+  opt.label = bsdf.describe(wo);
+  opt.seed = seed;
+  const Chi2Result r = chi2_test(
+      upper_hemisphere(),
+      [&](float u_lobe, Vec2f u) {
+        const BsdfSample s = bsdf.sample(wo, u_lobe, u);
+        return DirectionSample{s.wi, s.pdf};
+      },
+      [&](const Vec3f& wi) { return bsdf.pdf(wo, wi); }, opt);
+  INFO(r.report);
+  CHECK(r.passed(opt.significance));
+  // ∫ pdf is the probability of not losing the sample (binomial noise plus quadrature error).
+  const double sigma = std::sqrt(r.accepted_fraction * (1.0 - r.accepted_fraction) / double(opt.sample_count));
+  CHECK(r.pdf_integral <= 1.0 + 1e-3);
+  CHECK(std::abs(r.pdf_integral - r.accepted_fraction) <= 5.0 * sigma + 1e-3);
+}
+
+}  // namespace
+
+TEST_CASE("diffuse sampler matches its pdf (chi-square)", "[bsdf][chi2]") {
+  BsdfUnderTest bsdf{BsdfKind::Diffuse, {0.7f, 0.5f, 0.3f}};
+  uint64_t seed = 100;
+  for (const Vec3f& wo : outgoing_directions()) check_sampler(bsdf, wo, seed++);
+}
+
+TEST_CASE("roughconductor sampler matches its pdf (chi-square)", "[bsdf][chi2]") {
+  uint64_t seed = 200;
+  for (float alpha : {0.05f, 0.2f, 0.6f})
+    for (const Vec3f& wo : outgoing_directions())
+      check_sampler(BsdfUnderTest{BsdfKind::RoughConductor, {0.9f, 0.6f, 0.3f}, alpha}, wo, seed++);
+}
+
+TEST_CASE("roughplastic sampler matches its pdf (chi-square)", "[bsdf][chi2]") {
+  uint64_t seed = 300;
+  for (float alpha : {0.05f, 0.2f, 0.6f})
+    for (const Vec3f& wo : outgoing_directions())
+      check_sampler(BsdfUnderTest{BsdfKind::RoughPlastic, {0.8f, 0.4f, 0.2f}, alpha}, wo, seed++);
+}
+
+// Where every sample is kept ∫ pdf must be 1; where some are lost (GGX reflections below the
+// horizon) it must equal the kept fraction and never exceed 1.
+TEST_CASE("BSDF pdfs integrate to the fraction of samples kept", "[bsdf][pdf]") {
+  std::vector<BsdfUnderTest> bsdfs{{BsdfKind::Diffuse, {1.f, 1.f, 1.f}}};
+  for (float alpha : {0.05f, 0.3f, 1.0f}) {
+    bsdfs.push_back({BsdfKind::RoughConductor, {1.f, 1.f, 1.f}, alpha});
+    bsdfs.push_back({BsdfKind::RoughPlastic, {1.f, 1.f, 1.f}, alpha});
+  }
+  const long kSamples = 200'000;
+  for (const BsdfUnderTest& bsdf : bsdfs)
+    for (double theta : {0.0, 45.0, 89.5}) {
+      const Vec3f wo = spherical_direction(theta * kDegree, 2.1);
+      const double integral =
+          integrate_over_domain(upper_hemisphere(), [&](const Vec3f& wi) { return bsdf.pdf(wo, wi); });
+      TestRng rng(uint64_t(theta * 10) + 7);
+      long kept = 0;
+      for (long s = 0; s < kSamples; ++s) {
+        const float u_lobe = rng.next_float();
+        const Vec2f u{rng.next_float(), rng.next_float()};
+        if (bsdf.sample(wo, u_lobe, u).pdf > 0.f) ++kept;
+      }
+      const double kept_fraction = double(kept) / double(kSamples);
+      const double sigma = std::sqrt(kept_fraction * (1.0 - kept_fraction) / double(kSamples));
+      INFO(bsdf.describe(wo) << ": ∫pdf = " << integral << ", kept fraction = " << kept_fraction);
+      CHECK(integral <= 1.0 + 1e-3);
+      CHECK(std::abs(integral - kept_fraction) <= 5.0 * sigma + 1e-3);
+      if (kept == kSamples) CHECK(std::abs(integral - 1.0) <= 1e-3);
+    }
+}
+
+TEST_CASE("BSDF samplers reject outgoing directions below the horizon", "[bsdf]") {
+  const Vec3f below = spherical_direction(100.0 * kDegree, 0.3);
+  for (const BsdfUnderTest& bsdf : {BsdfUnderTest{BsdfKind::Diffuse}, BsdfUnderTest{BsdfKind::RoughConductor},
+                                    BsdfUnderTest{BsdfKind::RoughPlastic}}) {
+    INFO(bsdf.describe(below));
+    CHECK(bsdf.sample(below, 0.3f, {0.4f, 0.6f}).pdf == 0.f);
+    CHECK(bsdf.pdf(below, Vec3f(0.f, 0.f, 1.f)) == 0.f);
+    CHECK(bsdf.pdf(Vec3f(0.f, 0.f, 1.f), below) == 0.f);
+    CHECK(is_zero(bsdf.eval<float>(below, Vec3f(0.f, 0.f, 1.f))));
+    CHECK(is_zero(bsdf.eval<float>(Vec3f(0.f, 0.f, 1.f), below)));
+  }
+}
