@@ -1,6 +1,7 @@
 #include "engine/image_io.h"
 
 #include <OpenImageIO/imageio.h>
+#include <fcntl.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -16,6 +17,33 @@ namespace bl {
 namespace fs = std::filesystem;
 using namespace OIIO;
 
+namespace {
+// Redirects file descriptor 2 to /dev/null while alive (loaders run on the main thread, before
+// any progress output).
+class StderrSilencer {
+ public:
+  StderrSilencer() {
+    std::fflush(stderr);
+    saved_ = dup(STDERR_FILENO);
+    int null_fd = open("/dev/null", O_WRONLY);
+    if (saved_ >= 0 && null_fd >= 0) dup2(null_fd, STDERR_FILENO);
+    if (null_fd >= 0) close(null_fd);
+  }
+  ~StderrSilencer() {
+    std::fflush(stderr);
+    if (saved_ >= 0) {
+      dup2(saved_, STDERR_FILENO);
+      close(saved_);
+    }
+  }
+  StderrSilencer(const StderrSilencer&) = delete;
+  StderrSilencer& operator=(const StderrSilencer&) = delete;
+
+ private:
+  int saved_ = -1;
+};
+}  // namespace
+
 float srgb_to_linear(float v) { return v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f); }
 float linear_to_srgb(float v) {
   v = std::clamp(v, 0.f, 1.f);
@@ -24,6 +52,10 @@ float linear_to_srgb(float v) {
 
 Image read_image(const std::string& path, bool decode_srgb) {
   if (!fs::exists(path)) throw file_error(path, "file not found");
+  if (!fs::is_regular_file(path)) throw file_error(path, "not a regular file");
+  // Some format libraries (libpng) print their own messages to stderr; our one-line error says
+  // what went wrong, so theirs are silenced for the duration of the read.
+  StderrSilencer quiet;
   auto in = ImageInput::open(path);
   if (!in) {
     std::string err = geterror();
@@ -72,12 +104,20 @@ void commit(const std::string& tmp, const std::string& path) {
 }
 }  // namespace
 
+void check_output_format(const std::string& path) {
+  std::string ext = fs::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+  if (ext != ".exr" && ext != ".hdr" && ext != ".pfm" && ext != ".png" && ext != ".jpg" && ext != ".jpeg")
+    throw file_error(path, "unsupported output format '" + ext + "' (use .exr or .png)");
+  fs::path dir = fs::path(path).parent_path();
+  if (!dir.empty() && !fs::is_directory(dir)) throw file_error(path, "output folder does not exist");
+}
+
 void write_image(const std::string& path, const Image& image) {
+  check_output_format(path);
   std::string ext = fs::path(path).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
   const bool is_float = ext == ".exr" || ext == ".hdr" || ext == ".pfm";
-  if (!is_float && ext != ".png" && ext != ".jpg" && ext != ".jpeg")
-    throw file_error(path, "unsupported output format '" + ext + "' (use .exr or .png)");
   const std::string tmp = temp_name(path);
   auto out = ImageOutput::create(tmp);
   if (!out) throw file_error(path, "cannot create image writer");

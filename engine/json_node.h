@@ -71,6 +71,14 @@ class Node {
     }
     return d;
   }
+  // A whole number in [lo, hi]; 2.5 is an error, not 2.
+  long integer(const std::string& key, long fallback, long lo, long hi) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    double d = checked_number(*v, key, double(lo), double(hi));
+    if (d != std::floor(d)) fail_at(key, "expected a whole number");
+    return long(d);
+  }
   bool boolean(const std::string& key, bool fallback) {
     const json* v = find(key);
     if (!v) return fallback;
@@ -125,6 +133,11 @@ inline json parse_json_text(const std::string& text, const std::string& file) {
     std::string msg = e.what();
     if (auto p = msg.find("parse error"); p != std::string::npos) msg = msg.substr(p);
     throw file_error(file, line_col(text, e.byte) + ": malformed JSON (" + msg + ")");
+  } catch (const json::exception& e) {
+    // e.g. a number too large for a double ("1e999")
+    std::string msg = e.what();
+    if (auto p = msg.find("] "); p != std::string::npos) msg = msg.substr(p + 2);
+    throw file_error(file, "invalid JSON (" + msg + ")");
   }
 }
 

@@ -96,6 +96,8 @@ class GradientSink {
 template <class T>
 struct ParamLoad {
   static T load(const Param& p, size_t index) { return T(p.value[index]); }
+  // weight · element, e.g. one bilinear tap (one tape entry in the taped mode).
+  static T load_weighted(const Param& p, size_t index, float weight) { return T(p.value[index]) * weight; }
 };
 
 }  // namespace bl

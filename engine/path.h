@@ -126,6 +126,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (st.max_depth >= 0 && vertex >= st.max_depth) break;
 
     const Material& material = scene.materials[size_t(mesh.material)];
+    const BsdfValue<T> bsdf = material.at<T>(params, sp.uv);
+    const BsdfValue<float> bsdf_detached = bsdf.detached();
     Vec3f normal = sp.shading_normal;
     if (material.two_sided && dot(normal, wo_world) < 0.f) normal = -normal;
     const Frame frame(normal);
@@ -140,7 +142,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, sp.p, u) : scene.environment.sample(u);
       if (es.pdf > 0.f) {
         const Vec3f wi = frame.to_local(es.wi);
-        Spectrum<T> f = material.eval<T>(params, sp.uv, wo, wi);
+        Spectrum<T> f = bsdf.eval(wo, wi);
         if (!is_zero(value_of(f))) {
           Vec3f origin = offset_origin(sp.p, sp.geometric_normal, es.wi);
           float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
@@ -151,7 +153,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                                       ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                       : scene.environment.eval<T>(params, es.wi);
             float light_pdf = es.pdf * select_pdf;
-            float w_over_pdf = power_heuristic(light_pdf, material.pdf(params, sp.uv, wo, wi)) / light_pdf;
+            float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
             Spectrum<T> contribution = beta * f * emitted * w_over_pdf;
             radiance += contribution;
             if constexpr (Observer::kActive) {
@@ -165,9 +167,9 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
     // BSDF sampling continues the path.
     Vec2f u{sampler.get(Dim::at(vertex, Dim::kBsdfU)), sampler.get(Dim::at(vertex, Dim::kBsdfV))};
-    BsdfSample bs = material.sample(params, sp.uv, wo, sampler.get(Dim::at(vertex, Dim::kLobe)), u);
+    BsdfSample bs = bsdf_detached.sample(wo, sampler.get(Dim::at(vertex, Dim::kLobe)), u);
     if (bs.pdf <= 0.f) break;
-    Spectrum<T> f = material.eval<T>(params, sp.uv, wo, bs.wi);
+    Spectrum<T> f = bsdf.eval(wo, bs.wi);
     if (is_zero(value_of(f))) break;
     const Vec3f beta_before = value_of(beta);
     beta = beta * f * (1.f / bs.pdf);

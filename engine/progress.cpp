@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <exception>
 
 namespace bl {
 
@@ -36,7 +37,14 @@ Progress::Progress(std::string label, uint64_t total, std::string unit, bool ena
     : label_(std::move(label)), unit_(std::move(unit)), total_(total), enabled_(enabled),
       tty_(isatty(STDERR_FILENO) != 0), start_(std::chrono::steady_clock::now()) {}
 
-Progress::~Progress() { finish(); }
+Progress::~Progress() {
+  // When an error unwinds through a pass, the error line must be the only thing left to read.
+  if (std::uncaught_exceptions() > 0) {
+    if (enabled_ && tty_ && done_.load() > 0) std::fprintf(stderr, "\r\033[K");
+    return;
+  }
+  finish();
+}
 
 double Progress::elapsed() const {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();

@@ -95,6 +95,7 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
 // ---- Built-in shapes, mesh finishing, parameter overrides -------------------------------------
 
 #include <cstring>
+#include <filesystem>
 #include <sstream>
 
 #include "engine/errors.h"
@@ -180,16 +181,22 @@ void apply_override(Scene& scene, const std::string& assignment) {
   if (h < 0) throw InputError("--set: unknown parameter '" + name + "' (see `backlight params`)");
   Param& p = scene.params[h];
   std::vector<float> values;
-  bool numeric = !rhs.empty() && rhs.find_first_not_of("0123456789+-.eE, ") == std::string::npos;
+  // Numbers (including nan/inf, which validation then rejects by name) unless it names a file.
+  bool numeric = !rhs.empty() && !std::filesystem::exists(rhs);
   if (numeric) {
     std::stringstream ss(rhs);
     std::string item;
-    while (std::getline(ss, item, ',')) {
+    while (numeric && std::getline(ss, item, ',')) {
       char* end = nullptr;
       float v = std::strtof(item.c_str(), &end);
-      if (item.empty() || end == item.c_str()) throw InputError("--set " + name + ": '" + item + "' is not a number");
+      while (end && *end == ' ') ++end;
+      if (item.empty() || end == item.c_str() || *end != '\0') numeric = false;
       values.push_back(v);
     }
+    if (!numeric && rhs.find_first_of("/.") == std::string::npos)
+      throw InputError("--set " + name + ": '" + rhs + "' is neither numbers nor an existing image file");
+  }
+  if (numeric) {
     if (values.size() == 1 && p.size() > 1) values.assign(p.size(), values[0]);  // broadcast a scalar
     if (values.size() == 3 && p.is_image() && p.channels() == 3) {
       std::vector<float> full(p.size());
@@ -200,6 +207,7 @@ void apply_override(Scene& scene, const std::string& assignment) {
       throw InputError("--set " + name + ": got " + std::to_string(values.size()) + " values, parameter has shape " +
                        scene.params.shape_string(h));
   } else {
+    values.clear();
     Image img = read_image(rhs, !p.is_image() ? false : true);
     if (!p.is_image() || img.width != p.width() || img.height != p.height())
       throw InputError(rhs + ": image is " + std::to_string(img.width) + "x" + std::to_string(img.height) +

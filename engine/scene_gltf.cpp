@@ -70,6 +70,7 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
     throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
   if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size()) throw file_error(path, "accessor without buffer view");
   const auto& view = model.bufferViews[size_t(acc.bufferView)];
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size()) throw file_error(path, "buffer view references a missing buffer");
   const auto& buf = model.buffers[size_t(view.buffer)];
   size_t stride = view.byteStride ? view.byteStride : size_t(components) * 4;
   size_t start = view.byteOffset + acc.byteOffset;
@@ -86,8 +87,10 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
 std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
   const auto& acc = model.accessors[size_t(index)];
-  const auto& view = model.bufferViews.at(size_t(acc.bufferView));
-  const auto& buf = model.buffers.at(size_t(view.buffer));
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size()) throw file_error(path, "index accessor without buffer view");
+  const auto& view = model.bufferViews[size_t(acc.bufferView)];
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size()) throw file_error(path, "buffer view references a missing buffer");
+  const auto& buf = model.buffers[size_t(view.buffer)];
   size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
                 : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
                 : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
@@ -182,14 +185,36 @@ std::string sanitize(std::string name) {
 
 }  // namespace
 
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world);
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path);
+
+// Every index in the file is checked where it is used; `.at()` backs that up, and an index that
+// still slips through becomes this one-line error instead of an internal one.
+template <class F>
+auto guarded(const std::string& path, F&& load) {
+  try {
+    return load();
+  } catch (const std::out_of_range&) {
+    throw file_error(path, "invalid glTF: an index (texture, image, sampler, camera or buffer) is out of range");
+  }
+}
+
 std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world) {
+  return guarded(path, [&] { return load_gltf_meshes_unguarded(path, to_world); });
+}
+
+std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
+  return guarded(path, [&] { return load_gltf_scene_unguarded(path); });
+}
+
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world) {
   tinygltf::Model model = read_model(path);
   std::vector<Mesh> meshes;
   for (auto& p : collect_primitives(model, path, to_world, nullptr)) meshes.push_back(std::move(p.mesh));
   return meshes;
 }
 
-std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
   tinygltf::Model model = read_model(path);
   auto scene = std::make_unique<Scene>();
   scene->source = path;
@@ -230,6 +255,9 @@ std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
     m.name = unique(gm.name.empty() ? "material" + std::to_string(gi < 0 ? 0 : gi) : gm.name);
     m.two_sided = true;  // glTF's doubleSided=false is a culling hint; shading stays two-sided
     const auto& pbr = gm.pbrMetallicRoughness;
+    if (!(pbr.roughnessFactor >= 0 && pbr.roughnessFactor <= 1) || !(pbr.metallicFactor >= 0 && pbr.metallicFactor <= 1))
+      throw file_error(path, "material '" + gm.name + "': roughnessFactor and metallicFactor must be in [0, 1]");
+    if (pbr.baseColorFactor.size() < 3) throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
     std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
     const bool metal = pbr.metallicFactor >= 0.5;
     m.type = metal ? BsdfType::RoughConductor : BsdfType::RoughPlastic;
@@ -238,8 +266,12 @@ std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
     TextureSlot color;
     const std::string key = metal ? ".specular" : ".albedo";
     if (pbr.baseColorTexture.index >= 0) {
-      const auto& tex = model.textures.at(size_t(pbr.baseColorTexture.index));
-      const auto& img = model.images.at(size_t(tex.source));
+      if (size_t(pbr.baseColorTexture.index) >= model.textures.size())
+        throw file_error(path, "material '" + gm.name + "' references a missing texture");
+      const auto& tex = model.textures[size_t(pbr.baseColorTexture.index)];
+      if (tex.source < 0 || size_t(tex.source) >= model.images.size())
+        throw file_error(path, "texture " + std::to_string(pbr.baseColorTexture.index) + " references a missing image");
+      const auto& img = model.images[size_t(tex.source)];
       if (img.image.empty() || img.width <= 0 || img.component < 3 || img.bits != 8)
         throw file_error(path, "base colour texture '" + img.uri + "' could not be decoded as 8-bit RGB(A)");
       std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
@@ -249,7 +281,9 @@ std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
               std::min(1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
       color = add_param(m.name + key, {img.height, img.width, 3}, std::move(v), 0.f, 1.f);
       color.bitmap = true;
-      int wrap = tex.sampler >= 0 ? model.samplers.at(size_t(tex.sampler)).wrapS : 10497;
+      if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
+        throw file_error(path, "texture references a missing sampler");
+      int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
       color.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
     } else {
       color = add_param(m.name + key, {3}, base, 0.f, 1.f);
@@ -288,8 +322,12 @@ std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
 
   // Cameras: every perspective camera in the file, else one framing the bounding box.
   for (auto& [xf, ci] : cameras) {
-    const auto& gc = model.cameras.at(size_t(ci));
+    if (ci < 0 || size_t(ci) >= model.cameras.size()) throw file_error(path, "node references a missing camera");
+    const auto& gc = model.cameras[size_t(ci)];
     if (gc.type != "perspective") continue;
+    if (!(gc.perspective.yfov > 0 && gc.perspective.yfov < M_PI))
+      throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π)");
+    if (gc.perspective.aspectRatio < 0) throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
     Camera c;
     c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
     c.fov_axis_x = false;

@@ -79,11 +79,11 @@ struct Loader {
 
   void integrator(Node n) {
     auto& s = scene.settings;
-    s.spp = int(n.number("spp", s.spp, 1, 1 << 24));
-    s.max_depth = int(n.number("max_depth", s.max_depth, -1, 1024));
+    s.spp = int(n.integer("spp", s.spp, 1, 1 << 24));
+    s.max_depth = int(n.integer("max_depth", s.max_depth, -1, 1024));
     if (s.max_depth == 0) n.fail_at("max_depth", "must be ≥ 1, or −1 for unlimited");
-    s.rr_depth = int(n.number("rr_depth", s.rr_depth, 0, 1024));
-    s.seed = uint64_t(n.number("seed", 0, 0, 4294967295.0));
+    s.rr_depth = int(n.integer("rr_depth", s.rr_depth, 0, 1024));
+    s.seed = uint64_t(n.integer("seed", 0, 0, 4294967295L));
     s.hide_emitters = n.boolean("hide_emitters", false);
     n.finish();
   }
@@ -202,7 +202,9 @@ struct Loader {
       if (!uv->is_array() || uv->size() != m.positions.size()) n.fail_at("uvs", "needs one [u, v] per position");
       for (const auto& e : *uv) {
         if (!e.is_array() || e.size() != 2 || !e[0].is_number() || !e[1].is_number()) n.fail_at("uvs", "expected [u, v]");
-        m.uvs.push_back({e[0].get<float>(), e[1].get<float>()});
+        Vec2f uv{e[0].get<float>(), e[1].get<float>()};
+        if (!std::isfinite(uv.x) || !std::isfinite(uv.y)) n.fail_at("uvs", "not a finite number");
+        m.uvs.push_back(uv);
       }
     }
     return m;
@@ -304,6 +306,7 @@ struct Loader {
 
 std::unique_ptr<Scene> load_json_scene(const std::string& path) {
   if (!fs::exists(path)) throw file_error(path, "file not found");
+  if (!fs::is_regular_file(path)) throw file_error(path, "not a regular file");
   std::ifstream f(path, std::ios::binary);
   if (!f) throw file_error(path, "cannot open");
   std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());

@@ -16,7 +16,7 @@ namespace bl {
 
 struct TapeEntry {
   uint32_t a, b;  // operand entries, kNone when absent; a == kLeaf: b is a flat parameter index
-  float da, db;   // ∂result/∂a, ∂result/∂b
+  float da, db;   // ∂result/∂a, ∂result/∂b; for a leaf, da is its weight (result = weight · θ_b)
 };
 static_assert(sizeof(TapeEntry) == 16);
 
@@ -46,12 +46,17 @@ inline float value_of(const Var& a) { return a.v; }
 // Records result = f(a, b) with partials (da, db) when any operand is active.
 inline Var record(float value, const Var& a, float da, const Var& b, float db) {
   if (!a.active() && !b.active()) return Var(value);
+  // Identities need no entry: the result is the active operand itself (same value, same
+  // derivative), e.g. 0 + x when a sum starts from zero, or 1 · x.
+  if (!a.active() && value == b.v && db == 1.f) return b;
+  if (!b.active() && value == a.v && da == 1.f) return a;
   if (!b.active()) return Var(value, current_tape->push(a.index, da, Tape::kNone, 0.f));
   if (!a.active()) return Var(value, current_tape->push(b.index, db, Tape::kNone, 0.f));
   return Var(value, current_tape->push(a.index, da, b.index, db));
 }
 inline Var record(float value, const Var& a, float da) {
   if (!a.active()) return Var(value);
+  if (value == a.v && da == 1.f) return a;
   return Var(value, current_tape->push(a.index, da, Tape::kNone, 0.f));
 }
 
@@ -101,7 +106,12 @@ template <>
 struct ParamLoad<Var> {
   static Var load(const Param& p, size_t index) {
     if (!p.requires_grad) return Var(p.value[index]);
-    return Var(p.value[index], current_tape->push(Tape::kLeaf, 0.f, uint32_t(p.tape_offset + index), 0.f));
+    return Var(p.value[index], current_tape->push(Tape::kLeaf, 1.f, uint32_t(p.tape_offset + index), 0.f));
+  }
+  static Var load_weighted(const Param& p, size_t index, float weight) {
+    const float value = p.value[index] * weight;
+    if (!p.requires_grad) return Var(value);
+    return Var(value, current_tape->push(Tape::kLeaf, weight, uint32_t(p.tape_offset + index), 0.f));
   }
 };
 

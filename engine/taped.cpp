@@ -105,11 +105,12 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
     progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
     current_tape = nullptr;
   });
-  progress.finish();
+  // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
     throw InputError("taped: the tape would need about " + megabytes(projected_bytes.load()) +
                      ", more than the memory budget of " + megabytes(double(budget)) +
                      " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
+  progress.finish();
   result.primal_seconds = progress.elapsed();
 
   // 2. Loss (or functional) on the finished image, and its image-space adjoint.
@@ -145,7 +146,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
       const TapeEntry& e = tape->entries[i];
       if (e.a == Tape::kLeaf) {
         size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(e.b)) - offsets.begin()) - 1;
-        grads.add(int(handle), size_t(e.b) - offsets[handle], g);
+        grads.add(int(handle), size_t(e.b) - offsets[handle], g * e.da);
         continue;
       }
       if (e.a != Tape::kNone) adj[e.a] += g * e.da;

@@ -114,6 +114,7 @@ Image read_target(const std::string& path, const Camera& cam, const char* what) 
 
 int cmd_render(SceneFlags& f, const std::string& output) {
   auto limit = thread_limit(f.threads);
+  check_output_format(output);
   auto scene = f.load();
   PassStats stats;
   Image img = render(*scene, f.pass(*scene), &stats);
@@ -224,6 +225,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   GradientRequest rq = make_request(f, *scene, c.method, c.loss, c.target, c.adjoint_image, target, adjoint);
   if (c.directions < 1) throw InputError("--directions must be ≥ 1");
   if (!(c.eps > 0)) throw InputError("--eps must be > 0");
+  if (scene->params.find(c.param) < 0) throw InputError("unknown parameter '" + c.param + "' (see `backlight params`)");
   if (scene->settings.rr_depth > 0 &&
       (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))
     std::fprintf(stderr,
@@ -288,6 +290,16 @@ int main(int argc, char** argv) {
   optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default: all cores)");
   optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
 
+  if (argc > 1 && argv[1][0] != '-') {
+    const std::string command = argv[1];
+    bool known = false;
+    for (const auto* sub : app.get_subcommands({})) known = known || sub->get_name() == command;
+    if (!known) {
+      std::fprintf(stderr, "backlight: unknown command '%s' (expected render, params, grad, check or optimize)\n",
+                   command.c_str());
+      return 2;
+    }
+  }
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {

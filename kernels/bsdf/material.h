@@ -1,9 +1,10 @@
 #pragma once
-// A material evaluates its textures at the hit's uv into a plain BSDF parameter struct and then
-// calls the BSDF (pbrt-v4's Material::GetBxDF idea). Its backprop runs the BSDF's derivative
+// A material evaluates its textures at the hit's uv into a plain BSDF value (pbrt-v4's
+// Material::GetBxDF idea), once per path vertex. Its backprop runs the BSDF's derivative
 // shader and applies the chain rule into the texture gradient buffers, so texture derivative code
 // exists once (kernels/texture/).
 #include <string>
+#include <type_traits>
 
 #include "kernels/bsdf/diffuse.h"
 #include "kernels/bsdf/roughconductor.h"
@@ -14,6 +15,47 @@ namespace bl {
 
 enum class BsdfType { Diffuse, RoughConductor, RoughPlastic };
 
+// A material's textures evaluated at one surface point: a plain BSDF of scalar type T. The path
+// loop builds it once per vertex and uses it for NEE, sampling and the continuation weight.
+template <class T>
+struct BsdfValue {
+  BsdfType type = BsdfType::Diffuse;
+  Spectrum<T> albedo, specular;
+  T roughness{};
+  float ior = 1.5f;
+
+  Spectrum<T> eval(const Vec3f& wo, const Vec3f& wi) const {
+    switch (type) {
+      case BsdfType::Diffuse: return diffuse_eval(DiffuseParams<T>{albedo}, wo, wi);
+      case BsdfType::RoughConductor: return roughconductor_eval(RoughConductorParams<T>{specular, roughness}, wo, wi);
+      case BsdfType::RoughPlastic: return roughplastic_eval(RoughPlasticParams<T>{albedo, roughness, ior}, wo, wi);
+    }
+    return Spectrum<T>(T(0.f));
+  }
+  // Sampling and pdfs are detached: they read plain float values.
+  BsdfValue<float> detached() const {
+    return {type, value_of(albedo), value_of(specular), value_of(roughness), ior};
+  }
+  BsdfSample sample(const Vec3f& wo, float u_lobe, Vec2f u) const {
+    static_assert(std::is_same_v<T, float>, "sample a detached BsdfValue");
+    switch (type) {
+      case BsdfType::Diffuse: return diffuse_sample({albedo}, wo, u_lobe, u);
+      case BsdfType::RoughConductor: return roughconductor_sample({specular, roughness}, wo, u_lobe, u);
+      case BsdfType::RoughPlastic: return roughplastic_sample({albedo, roughness, ior}, wo, u_lobe, u);
+    }
+    return {};
+  }
+  float pdf(const Vec3f& wo, const Vec3f& wi) const {
+    static_assert(std::is_same_v<T, float>, "take pdfs of a detached BsdfValue");
+    switch (type) {
+      case BsdfType::Diffuse: return diffuse_pdf({albedo}, wo, wi);
+      case BsdfType::RoughConductor: return roughconductor_pdf({specular, roughness}, wo, wi);
+      case BsdfType::RoughPlastic: return roughplastic_pdf({albedo, roughness, ior}, wo, wi);
+    }
+    return 0.f;
+  }
+};
+
 struct Material {
   std::string name;
   BsdfType type = BsdfType::Diffuse;
@@ -23,57 +65,51 @@ struct Material {
   float ior = 1.5f;
   bool two_sided = true;
 
+  // Evaluates the textures this material's BSDF reads at uv (only those).
+  template <class T>
+  BsdfValue<T> at(const ParamStore& s, Vec2f uv) const {
+    BsdfValue<T> v;
+    v.type = type;
+    v.ior = ior;
+    if (type != BsdfType::RoughConductor) v.albedo = albedo.eval<T>(s, uv);
+    if (type == BsdfType::RoughConductor) v.specular = specular.eval<T>(s, uv);
+    if (type != BsdfType::Diffuse) v.roughness = roughness.eval_scalar<T>(s, uv);
+    return v;
+  }
+
+  // Convenience for tests and tools: textures and BSDF in one call.
   template <class T>
   Spectrum<T> eval(const ParamStore& s, Vec2f uv, const Vec3f& wo, const Vec3f& wi) const {
-    switch (type) {
-      case BsdfType::Diffuse: return diffuse_eval(DiffuseParams<T>{albedo.eval<T>(s, uv)}, wo, wi);
-      case BsdfType::RoughConductor:
-        return roughconductor_eval(
-            RoughConductorParams<T>{specular.eval<T>(s, uv), roughness.eval_scalar<T>(s, uv)}, wo, wi);
-      case BsdfType::RoughPlastic:
-        return roughplastic_eval(
-            RoughPlasticParams<T>{albedo.eval<T>(s, uv), roughness.eval_scalar<T>(s, uv), ior}, wo, wi);
-    }
-    return Spectrum<T>(T(0.f));
+    return at<T>(s, uv).eval(wo, wi);
   }
-
   BsdfSample sample(const ParamStore& s, Vec2f uv, const Vec3f& wo, float u_lobe, Vec2f u) const {
-    switch (type) {
-      case BsdfType::Diffuse: return diffuse_sample({}, wo, u_lobe, u);
-      case BsdfType::RoughConductor: return roughconductor_sample(conductor_params(s, uv), wo, u_lobe, u);
-      case BsdfType::RoughPlastic: return roughplastic_sample(plastic_params(s, uv), wo, u_lobe, u);
-    }
-    return {};
+    return at<float>(s, uv).sample(wo, u_lobe, u);
   }
-
   float pdf(const ParamStore& s, Vec2f uv, const Vec3f& wo, const Vec3f& wi) const {
-    switch (type) {
-      case BsdfType::Diffuse: return diffuse_pdf({}, wo, wi);
-      case BsdfType::RoughConductor: return roughconductor_pdf(conductor_params(s, uv), wo, wi);
-      case BsdfType::RoughPlastic: return roughplastic_pdf(plastic_params(s, uv), wo, wi);
-    }
-    return 0.f;
+    return at<float>(s, uv).pdf(wo, wi);
   }
 
-  // Adds ⟨adjoint, ∂eval/∂θ⟩ into the gradient of every texel/constant this material read.
+  // Adds ⟨adjoint, ∂eval/∂θ⟩ into the gradient of every texel/constant this material read: the
+  // BSDF's derivative shader, then the chain rule into the textures.
   void backprop(const ParamStore& s, Vec2f uv, const Vec3f& wo, const Vec3f& wi, const Vec3f& adjoint,
                 GradientAccumulator& grads) const {
+    const BsdfValue<float> v = at<float>(s, uv);
     switch (type) {
       case BsdfType::Diffuse: {
-        auto g = diffuse_backprop({albedo.eval<float>(s, uv)}, wo, wi, adjoint);
+        auto g = diffuse_backprop({v.albedo}, wo, wi, adjoint);
         albedo.backprop(s, uv, g.albedo, grads);
         break;
       }
       case BsdfType::RoughConductor: {
-        auto g = roughconductor_backprop(conductor_params(s, uv), wo, wi, adjoint);
+        auto g = roughconductor_backprop({v.specular, v.roughness}, wo, wi, adjoint);
         specular.backprop(s, uv, g.specular, grads);
-        roughness_backprop(s, uv, g.roughness, grads);
+        roughness.backprop_scalar(s, uv, g.roughness, grads);
         break;
       }
       case BsdfType::RoughPlastic: {
-        auto g = roughplastic_backprop(plastic_params(s, uv), wo, wi, adjoint);
+        auto g = roughplastic_backprop({v.albedo, v.roughness, ior}, wo, wi, adjoint);
         albedo.backprop(s, uv, g.albedo, grads);
-        roughness_backprop(s, uv, g.roughness, grads);
+        roughness.backprop_scalar(s, uv, g.roughness, grads);
         break;
       }
     }
@@ -87,19 +123,6 @@ struct Material {
       case BsdfType::RoughPlastic: return grads.wants(albedo.param) || grads.wants(roughness.param);
     }
     return false;
-  }
-
- private:
-  RoughConductorParams<float> conductor_params(const ParamStore& s, Vec2f uv) const {
-    return {specular.eval<float>(s, uv), roughness.eval_scalar<float>(s, uv)};
-  }
-  RoughPlasticParams<float> plastic_params(const ParamStore& s, Vec2f uv) const {
-    return {albedo.eval<float>(s, uv), roughness.eval_scalar<float>(s, uv), ior};
-  }
-  // Below the α clamp the BSDF does not depend on the parameter (its derivative is 0, which
-  // forward mode through clamp_alpha already yields).
-  void roughness_backprop(const ParamStore& s, Vec2f uv, float g, GradientAccumulator& grads) const {
-    roughness.backprop_scalar(s, uv, g, grads);
   }
 };
 

@@ -1,0 +1,398 @@
+#!/usr/bin/env bash
+# Command-line contract of tools/backlight.cpp.
+# Usage: tests/cli/test_errors.sh BACKLIGHT_BIN [REPO_ROOT]
+#
+# Bad input: every user error exits with status 2, prints exactly ONE line on stderr starting
+# with "backlight: ", names the file / flag / parameter at fault and the problem, never crashes
+# (no signal) and writes no output.
+# Good paths: --help texts, atomic image writes, `params --json/--dump`, `grad` outputs
+# (gradients.json layout, per-parameter files), `grad --adjoint-image` and `check`.
+# Runs every case and reports all failures at the end (exit 1 if any).
+set -uo pipefail
+
+bin="${1:?usage: test_errors.sh BACKLIGHT_BIN [REPO_ROOT]}"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+repo="$(cd "${2:-$here/../..}" && pwd)"
+cornell="$repo/scenes/cornell/scene.json"
+gltf_dir="$repo/scenes/gltf"
+[ -x "$bin" ] || { echo "test_errors: $bin is not executable" >&2; exit 1; }
+[ -f "$cornell" ] || { echo "test_errors: missing $cornell" >&2; exit 1; }
+
+tmp="$(mktemp -d)"
+trap 'rm -rf "$tmp"' EXIT
+cd "$tmp" || exit 1
+ulimit -c 0  # a crash shows as a signal exit status; leave no core files
+
+# Cases run concurrently (process start-up dominates their cost); failures collect in a file.
+jobs_max="$(nproc 2>/dev/null || echo 2)"
+cases=0
+fail() { printf 'FAIL: %s\n' "$*" >>"$tmp/failures"; }
+throttle() { while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do wait -n; done; }
+in_background() { cases=$((cases + 1)); throttle; "$@" & }
+
+# expect_error NAME PATTERN... -- ARGS...
+# A PATTERN is a fixed string the single stderr line must contain; "re:REGEX" is an extended regex.
+expect_error() { in_background expect_error_now "$@"; }
+expect_error_now() {
+  local name="$1"; shift
+  local patterns=()
+  while [ "$#" -gt 0 ] && [ "$1" != "--" ]; do patterns+=("$1"); shift; done
+  shift
+  local err="$tmp/err.$name" rc=0
+  "$bin" "$@" >"$tmp/out.$name" 2>"$err" </dev/null || rc=$?
+  local lines; lines="$(awk 'END { print NR }' "$err")"  # counts an unterminated last line too
+  local msg; msg="$(cat "$err")"
+  if [ "$rc" -ge 128 ]; then fail "$name: crashed (status $rc, signal $((rc - 128))): $msg"; return; fi
+  [ "$rc" -eq 2 ] || fail "$name: exit status $rc, expected 2: $msg"
+  [ "$lines" -eq 1 ] || fail "$name: $lines stderr lines, expected 1:"$'\n'"$msg"
+  case "$msg" in "backlight: "*) ;; *) [ "$lines" -ne 1 ] || fail "$name: message does not start with 'backlight: ': $msg" ;; esac
+  local p
+  for p in "${patterns[@]}"; do
+    if [[ "$p" == re:* ]]; then
+      grep -qE -- "${p#re:}" "$err" || fail "$name: message does not match /${p#re:}/: $msg"
+    else
+      grep -qF -- "$p" "$err" || fail "$name: message does not mention '$p': $msg"
+    fi
+  done
+}
+
+# expect_ok NAME ARGS...: exit 0 (stdout in out.NAME, stderr in err.NAME).
+expect_ok() {
+  local name="$1"; shift
+  local rc=0
+  "$bin" "$@" >"$tmp/out.$name" 2>"$tmp/err.$name" </dev/null || rc=$?
+  [ "$rc" -eq 0 ] || fail "$name: exit status $rc, expected 0: $(cat "$tmp/err.$name")"
+  return "$rc"
+}
+
+# scene_variant SRC OUT PYTHON: OUT = SRC's JSON with the statement applied to `s`.
+scene_variant() {
+  python3 - "$1" "$2" "$3" <<'PY'
+import json, sys
+s = json.load(open(sys.argv[1]))
+exec(sys.argv[3])
+json.dump(s, open(sys.argv[2], "w"), indent=1)
+PY
+}
+
+# Image size from an EXR (dataWindow) or PNG (IHDR) header: prints "WxH".
+image_size() {
+  python3 - "$1" <<'PY'
+import struct, sys
+data = open(sys.argv[1], "rb").read()
+if data[:8] == b"\x89PNG\r\n\x1a\n":
+    w, h = struct.unpack(">II", data[16:24]); print(f"{w}x{h}"); sys.exit()
+assert data[:4] == b"\x76\x2f\x31\x01", "not an EXR"
+i = 8
+while data[i] != 0:
+    name_end = data.index(b"\0", i); name = data[i:name_end]
+    type_end = data.index(b"\0", name_end + 1)
+    size, = struct.unpack("<i", data[type_end + 1:type_end + 5])
+    value = data[type_end + 5:type_end + 5 + size]
+    if name == b"dataWindow":
+        x0, y0, x1, y1 = struct.unpack("<iiii", value); print(f"{x1 - x0 + 1}x{y1 - y0 + 1}"); sys.exit()
+    i = type_end + 5 + size
+sys.exit("no dataWindow")
+PY
+}
+
+# ---------------------------------------------------------------------------------------------
+# Fixtures. "small" is the Cornell box with an 8x8 wall texture (the 1024² one costs load time).
+"$bin" render "$cornell" -o "$tmp/img75.exr" --resolution 7x5 --spp 1 -q 2>/dev/null || fail "fixture img75.exr"
+"$bin" render "$cornell" -o "$tmp/wall8.png" --resolution 8x8 --spp 1 -q 2>/dev/null || fail "fixture wall8.png"
+mkdir -p small && cp "$tmp/wall8.png" small/wall.png
+small="$tmp/small/scene.json"
+scene_variant "$cornell" "$small" 's["cameras"][0]["resolution"] = [16, 16]'
+"$bin" render "$small" -o "$tmp/t16.exr" --spp 2 --seed 9 -q --set white.albedo=0.5 2>/dev/null || fail "fixture t16.exr"
+"$bin" render "$small" -o "$tmp/t64.exr" --resolution 64x64 --spp 1 -q 2>/dev/null || fail "fixture t64.exr"
+v() { scene_variant "$small" "$tmp/small/$1.json" "$2"; echo "$tmp/small/$1.json"; }
+
+# ---------------------------------------------------------------------------------------------
+# Scene files.
+expect_error missing_scene "nope.json" "not found" -- render "$tmp/nope.json" -o out_missing.exr
+printf '{\n  "integrator": {"spp": 4},\n  "cameras": [}\n' >malformed.json
+expect_error malformed_json "malformed.json" "re:malformed.json: 3:[0-9]+" "malformed JSON" -- \
+  render malformed.json -o out_malformed.exr
+expect_error unknown_top_key "/" "unknown key 'integratr'" -- render "$(v top 's["integratr"] = {}')" -o o.exr
+expect_error unknown_nested_key "top2.json" "/materials/white" "unknown key 'albdo'" -- \
+  render "$(v top2 's["materials"]["white"]["albdo"] = 1')" -o o.exr
+expect_error unknown_camera_key "/cameras/1" "fovv" -- render "$(v cam 's["cameras"][1]["fovv"] = 1')" -o o.exr
+expect_error unknown_deep_key "/shapes/2/transform/rotate" "angel" -- \
+  render "$(v rot 's["shapes"][2]["transform"]["rotate"] = {"axis": [1, 0, 0], "angle": 90, "angel": 1}')" -o o.exr
+expect_error unknown_material_type "mtype.json" "/materials/red/type" "lambert" -- \
+  render "$(v mtype 's["materials"]["red"]["type"] = "lambert"')" -o o.exr
+expect_error unknown_material_ref "/shapes/1/material" "nosuch" -- \
+  render "$(v umat 's["shapes"][1]["material"] = "nosuch"')" -o o.exr
+expect_error negative_radiance "/shapes/5/emitter/radiance" "light.radiance" "negative" -- \
+  render "$(v negrad 's["shapes"][5]["emitter"]["radiance"] = [-1, 1, 1]')" -o o.exr
+expect_error negative_albedo_json "/materials/red/albedo" "red.albedo" "negative" -- \
+  render "$(v negalb 's["materials"]["red"]["albedo"] = [0.5, -0.1, 1]')" -o o.exr
+expect_error albedo_above_one "red.albedo" "valid range" -- \
+  render "$(v bigalb 's["materials"]["red"]["albedo"] = [0.5, 1.5, 1]')" -o o.exr
+# JSON cannot spell NaN; 1e39 overflows float (→ inf) and 1e999 overflows double (nlohmann
+# rejects it while parsing: out_of_range.406 "number overflow").
+sed 's/"radiance": \[17, 12, 4\]/"radiance": [1e39, 12, 4]/' "$cornell" >small/inf_radiance.json
+expect_error float_overflow_json "inf_radiance.json" "light.radiance" "re:NaN|infinite|finite" -- \
+  render small/inf_radiance.json -o o.exr
+sed 's/"albedo": \[0.570, 0.043, 0.044\]/"albedo": [1e999, 0.043, 0.044]/' "$cornell" >small/overflow.json
+expect_error double_overflow_json "overflow.json" "re:overflow|finite|range" -- render small/overflow.json -o o.exr
+# UVs are vertex data like positions and normals: an infinite one must not turn pixels into NaN.
+expect_error mesh_uv_not_finite "/shapes/0/uvs" "finite" -- \
+  render "$(v infuv 's["shapes"][0] = {"name": "t", "type": "mesh",
+  "material": "wall", "positions": [[-1, -1, -1], [1, -1, -1], [0, 1, -1]], "indices": [[0, 1, 2]],
+  "uvs": [[0, 0], [1, 0], [0, 1e39]]}')" -o o.exr --spp 1
+mkdir -p adir.json
+expect_error scene_is_directory "adir.json" -- render adir.json -o o.exr
+expect_error bad_integrator_value "/integrator" "max_depth" -- \
+  render "$(v depth 's["integrator"]["max_depth"] = 0')" -o o.exr
+
+# Textures.
+expect_error texture_missing "missing.png" "not found" -- \
+  render "$(v texmiss 's["materials"]["wall"]["albedo"]["file"] = "missing.png"')" -o o.exr
+head -c 2000 /dev/urandom >small/random.png
+expect_error texture_random_bytes "random.png" "re:cannot read|corrupt" -- \
+  render "$(v texrand 's["materials"]["wall"]["albedo"]["file"] = "random.png"')" -o o.exr
+head -c 3000 t64.exr >small/trunc.exr
+expect_error texture_truncated_exr "trunc.exr" "re:cannot read|corrupt" -- \
+  render "$(v textrunc 's["materials"]["wall"]["albedo"]["file"] = "trunc.exr"')" -o o.exr
+head -c 100 t64.exr >small/trunc_header.exr
+expect_error texture_truncated_exr_header "trunc_header.exr" "re:cannot read|corrupt" -- \
+  render "$(v textrunch 's["materials"]["wall"]["albedo"]["file"] = "trunc_header.exr"')" -o o.exr
+# A PNG signature followed by garbage, and a PNG cut in its pixel data: libpng's own error
+# output must not reach stderr as extra lines.
+{ printf '\x89PNG\r\n\x1a\n'; head -c 500 /dev/urandom; } >small/badsig.png
+expect_error texture_png_garbage_after_signature "badsig.png" "re:cannot read|corrupt" -- \
+  render "$(v texsig 's["materials"]["wall"]["albedo"]["file"] = "badsig.png"')" -o o.exr
+head -c 200 "$repo/scenes/cornell/wall.png" >small/cut.png
+expect_error texture_png_truncated "cut.png" "re:cannot read|corrupt" -- \
+  render "$(v texcut 's["materials"]["wall"]["albedo"]["file"] = "cut.png"')" -o o.exr
+
+# glTF.
+head -c 1000 /dev/urandom >garbage.gltf
+expect_error gltf_garbage "garbage.gltf" "invalid glTF" -- render garbage.gltf -o o.exr --resolution 8x8 --spp 1
+mkdir -p nobin && cp "$gltf_dir/scene.gltf" "$gltf_dir/checker.png" nobin/
+expect_error gltf_missing_bin "scene.gltf" "scene.bin" -- render nobin/scene.gltf -o o.exr --resolution 8x8 --spp 1
+mkdir -p g && cp "$gltf_dir"/* g/
+gv() { scene_variant "$tmp/g/scene.gltf" "$tmp/g/$1.gltf" "$2"; echo "$tmp/g/$1.gltf"; }
+expect_error gltf_accessor_index "accessor.gltf" "accessor" -- \
+  render "$(gv accessor 's["meshes"][1]["primitives"][0]["attributes"]["POSITION"] = 99')" \
+    -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_accessor_past_end "count.gltf" "accessor" "past the end" -- \
+  render "$(gv count 's["accessors"][4]["count"] = 100000')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_index_accessor_past_end "icount.gltf" "past the end" -- \
+  render "$(gv icount 's["accessors"][7]["count"] = 10**6')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_buffer_view_buffer "bvbuf.gltf" "re:buffer" -- \
+  render "$(gv bvbuf 's["bufferViews"][0]["buffer"] = 5')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_node "node.gltf" "node" -- \
+  render "$(gv node 's["scenes"][0]["nodes"] = [0, 77]')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_texture_index "texidx.gltf" "texture" -- \
+  render "$(gv texidx 's["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = 42')" \
+    -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_camera_index "camidx.gltf" "camera" -- \
+  render "$(gv camidx 's["nodes"][5]["camera"] = 42')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_zero_fov "yfov0.gltf" "re:fov|yfov" -- \
+  render "$(gv yfov0 's["cameras"][0]["perspective"]["yfov"] = 0')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_shape_in_json "garbage.gltf" "invalid glTF" -- \
+  render "$(v gshape 's["shapes"][0] = {"name": "g", "type": "gltf", "file": "../garbage.gltf", "material": "white"}')" \
+    -o o.exr --resolution 8x8 --spp 1
+
+# --set.
+expect_error set_unknown_param "unknown.param" "unknown parameter" -- render "$small" -o o.exr --set unknown.param=1
+expect_error set_image_wrong_size "img75.exr" "7x5" "wall.albedo" "[8,8,3]" -- \
+  render "$small" -o o.exr --set wall.albedo=img75.exr
+expect_error set_nan "white.albedo" "re:NaN|not a (finite )?number" -- render "$small" -o o.exr --set white.albedo=nan
+expect_error set_inf "white.albedo" "re:NaN|infinite|finite" -- render "$small" -o o.exr --set white.albedo=1e999
+expect_error set_negative "white.albedo" "negative" -- render "$small" -o o.exr --set white.albedo=-0.5,0.5,0.5
+expect_error set_count "white.albedo" "2 values" "[3]" -- render "$small" -o o.exr --set white.albedo=0.5,0.5
+expect_error set_syntax "--set" "white.albedo" -- render "$small" -o o.exr --set white.albedo
+expect_error set_corrupt_image "random.png" "re:cannot read|corrupt" -- \
+  render "$small" -o o.exr --set wall.albedo=small/random.png
+expect_error set_truncated_exr "trunc.exr" "re:cannot read|corrupt" -- \
+  render "$small" -o o.exr --set wall.albedo=small/trunc.exr
+
+# Flags.
+expect_error resolution_garbage "--resolution" "garbage" -- render "$small" -o o.exr --resolution garbage
+expect_error resolution_zero "--resolution" "0x5" -- render "$small" -o o.exr --resolution 0x5
+expect_error resolution_trailing "--resolution" -- render "$small" -o o.exr --resolution 16x16x
+expect_error camera_out_of_range "--camera 99" "5 camera" -- render "$small" -o o.exr --camera 99
+expect_error camera_negative "--camera" -- render "$small" -o o.exr --camera -1
+expect_error spp_zero "--spp" -- render "$small" -o o.exr --spp 0
+expect_error spp_not_a_number "--spp" -- render "$small" -o o.exr --spp abc
+expect_error max_depth_zero "--max-depth" -- render "$small" -o o.exr --max-depth 0
+expect_error rr_depth_negative "--rr-depth" -- render "$small" -o o.exr --rr-depth -1
+expect_error threads_negative "--threads" -- render "$small" -o o.exr --threads -1
+expect_error unknown_flag "--bogus" -- render "$small" -o o.exr --bogus
+expect_error optimize_missing_config "nope.json" "not found" -- optimize nope.json
+expect_error no_subcommand "subcommand" --
+expect_error unknown_subcommand "frobnicate" -- frobnicate
+expect_error output_format "o.bmp" "re:format|\.bmp" -- render "$small" -o o.bmp --spp 1 -q
+expect_error output_dir_missing "o.exr" -- render "$small" -o "$tmp/no/such/dir/o.exr" --spp 1 -q
+
+# grad / check.
+expect_error grad_target_size "img75.exr" "7x5" "16x16" -- grad "$small" --spp 1 --target img75.exr --out g_err1
+expect_error grad_target_missing "nosuch.exr" "not found" -- grad "$small" --spp 1 --target nosuch.exr --out g_err2
+expect_error grad_unknown_param "nosuch.param" "unknown parameter" -- \
+  grad "$small" --spp 1 --target t16.exr --param nosuch.param --out g_err3
+expect_error grad_unknown_method "bogus" "method" -- grad "$small" --spp 1 --target t16.exr --method bogus --out g_err4
+expect_error grad_unknown_loss "bogus" "loss" -- grad "$small" --spp 1 --target t16.exr --loss bogus --out g_err5
+expect_error grad_no_target "--target" "--adjoint-image" -- grad "$small" --spp 1 --out g_err6
+expect_error grad_adjoint_size "img75.exr" "16x16" -- grad "$small" --spp 1 --adjoint-image img75.exr --out g_err7
+expect_error grad_memory_budget_syntax "--memory-budget" "lots" -- \
+  grad "$small" --spp 1 --target t16.exr --method taped --memory-budget lots --out g_err8
+# The taped mode must refuse a tape it cannot hold, stating the projected size and the budget.
+# Without -q: a progress line left behind on stderr would break the one-line contract.
+expect_error taped_memory_budget "re:[0-9]+ MB" "budget" "re:budget of 1 MB" -- \
+  grad "$cornell" --resolution 64x64 --target t64.exr --method taped --memory-budget 1MB --out g_err9
+expect_error check_unknown_param "nosuch" "unknown parameter" -- check "$small" --spp 1 --target t16.exr --param nosuch
+expect_error check_directions "--directions" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --directions 0 --rr-depth 0
+# ---------------------------------------------------------------------------------------------
+# Help.
+good_help() {
+  expect_ok help --help || return
+  local w
+  for w in render params grad check optimize --help-all; do grep -qF -- "$w" out.help || fail "--help does not mention $w"; done
+}
+common=(--set --resolution --camera --spp --seed --max-depth --rr-depth --threads --quiet)
+good_command_help() {  # COMMAND FLAG...
+  local cmd="$1"; shift
+  expect_ok "help_$cmd" "$cmd" --help || return
+  local f
+  for f in "${common[@]}" "$@"; do grep -qE -- "(^|[ ,])$f([ ,=]|$)" "out.help_$cmd" || fail "$cmd --help does not mention $f"; done
+}
+good_command_help_only() {  # COMMAND FLAG...: commands without the scene flags
+  local saved=("${common[@]}"); common=(); good_command_help "$@"; common=("${saved[@]}")
+}
+in_background good_help
+in_background good_command_help render --output
+in_background good_command_help params --json --dump
+in_background good_command_help grad --target --adjoint-image --out --method --loss --adjoint-seed --param --memory-budget
+in_background good_command_help_only optimize --resume --threads --quiet
+in_background good_command_help check --target --adjoint-image --param --directions --eps --tolerance --method --loss \
+  --direction-seed
+
+# render: .exr and .png, written atomically (nothing else left in the folder).
+good_render() {
+  mkdir -p renders
+  expect_ok render_exr render "$small" -o renders/a.exr --spp 1 --resolution 12x10 || return
+  expect_ok render_png render "$small" -o renders/b.png --spp 1 --resolution 12x10 -q || return
+  grep -q 'render: 12x10' err.render_exr || fail "render: no summary line on stderr: $(cat err.render_exr)"
+  [ "$(ls -A renders | tr '\n' ' ')" = "a.exr b.png " ] || fail "render left other files: $(ls -A renders)"
+  [ "$(image_size renders/a.exr)" = 12x10 ] || fail "a.exr is $(image_size renders/a.exr), expected 12x10"
+  [ "$(image_size renders/b.png)" = 12x10 ] || fail "b.png is $(image_size renders/b.png), expected 12x10"
+  # Overwriting goes through the same temp+rename path.
+  expect_ok render_overwrite render "$small" -o renders/a.exr --spp 1 --resolution 12x10 -q || return
+  [ "$(ls -A renders | tr '\n' ' ')" = "a.exr b.png " ] || fail "overwrite left other files: $(ls -A renders)"
+}
+in_background good_render
+
+# params --json / --dump.
+good_params_json() {
+  expect_ok params_json params "$cornell" --json || return
+  python3 - out.params_json <<'PY' || fail "params --json output: $(head -c 300 out.params_json)"
+import json, math, sys
+arr = json.load(open(sys.argv[1]))
+assert isinstance(arr, list) and arr, arr
+names = set()
+for e in arr:
+    assert set(e) >= {"name", "shape", "size"}, e
+    assert e["size"] == math.prod(e["shape"]), e
+    names.add(e["name"])
+assert {"wall.albedo", "light.radiance", "metal.roughness"} <= names, names
+wall = [e for e in arr if e["name"] == "wall.albedo"][0]
+assert wall["shape"] == [1024, 1024, 3], wall
+PY
+}
+in_background good_params_json
+good_params_dump() {
+  expect_ok params_dump params "$cornell" --dump dump || return
+  [ -f dump/wall.albedo.exr ] || fail "params --dump: no dump/wall.albedo.exr"
+  [ "$(image_size dump/wall.albedo.exr)" = 1024x1024 ] || fail "dump/wall.albedo.exr is $(image_size dump/wall.albedo.exr)"
+  python3 - dump/params.json <<'PY' || fail "params --dump params.json"
+import json, sys
+j = json.load(open(sys.argv[1]))
+assert j["light.radiance"]["value"] == [17.0, 12.0, 4.0], j["light.radiance"]
+assert j["metal.roughness"]["shape"] == [1], j["metal.roughness"]
+assert "wall.albedo" not in j or "file" in j["wall.albedo"], j.get("wall.albedo")
+PY
+  [ -z "$(ls -A dump | grep -v -e '^params.json$' -e '^wall.albedo.exr$')" ] || fail "params --dump left: $(ls -A dump)"
+}
+in_background good_params_dump
+
+# grad: outputs and their layout (the real Cornell box: wall.albedo is 1024x1024).
+good_grad() {
+  "$bin" render "$cornell" -o t32.exr --resolution 32x32 --spp 2 --seed 4 -q --set white.albedo=0.5 2>/dev/null
+  expect_ok grad grad "$cornell" --resolution 32x32 --spp 1 --target t32.exr --out gout -q || return
+  local f
+  for f in image.exr gradients.json wall.albedo.grad.exr; do [ -f "gout/$f" ] || fail "grad: no gout/$f"; done
+  [ "$(image_size gout/image.exr)" = 32x32 ] || fail "grad image.exr is $(image_size gout/image.exr)"
+  [ "$(image_size gout/wall.albedo.grad.exr)" = 1024x1024 ] ||
+    fail "wall.albedo.grad.exr is $(image_size gout/wall.albedo.grad.exr), expected 1024x1024"
+  [ -z "$(ls -A gout | grep -v -e '^image.exr$' -e '^gradients.json$' -e '\.grad\.exr$')" ] || fail "grad left: $(ls -A gout)"
+  python3 - gout/gradients.json <<'PY' || fail "grad gradients.json"
+import json, math, os, sys
+j = json.load(open(sys.argv[1]))
+assert isinstance(j["loss"], float) and math.isfinite(j["loss"]) and j["loss"] > 0, j.get("loss")
+assert j["loss_type"] == "l2" and j["method"] == "prb" and j["spp"] == 1, j
+t = j["timings"]
+for k in ("primal_seconds", "adjoint_seconds", "total_seconds"):
+    assert isinstance(t[k], (int, float)) and t[k] >= 0, t
+params = j["parameters"]
+assert {"wall.albedo", "light.radiance", "metal.roughness", "white.albedo"} <= set(params), params.keys()
+for name, e in params.items():
+    assert e["size"] == math.prod(e["shape"]), (name, e)
+    assert math.isfinite(e["grad_norm"]) and e["grad_norm"] >= 0, (name, e)
+    if e["size"] <= 64:
+        assert "file" not in e and len(e["grad"]) == e["size"], (name, e)
+        norm = math.sqrt(sum(g * g for g in e["grad"]))
+        assert abs(norm - e["grad_norm"]) <= 1e-5 * norm + 1e-30, (name, norm, e["grad_norm"])
+    else:
+        assert "grad" not in e and e["file"] == name + ".grad.exr", (name, e)
+        assert os.path.isfile(os.path.join(os.path.dirname(sys.argv[1]), e["file"])), e["file"]
+assert params["wall.albedo"]["shape"] == [1024, 1024, 3]
+assert params["wall.albedo"]["grad_norm"] > 0 and params["light.radiance"]["grad_norm"] > 0
+PY
+}
+in_background good_grad
+# --param restricts the output; --adjoint-image gives a functional instead of a loss.
+good_grad_param() {
+  expect_ok grad_param grad "$small" --spp 1 --target t16.exr --param light.radiance --out gparam -q || return
+  python3 -c "import json,sys; p=json.load(open(sys.argv[1]))['parameters']; assert list(p)==['light.radiance'], p" \
+    gparam/gradients.json || fail "grad --param: other parameters in gradients.json"
+}
+in_background good_grad_param
+good_grad_adjoint() {
+  expect_ok grad_adjoint grad "$small" --spp 1 --adjoint-image t16.exr --out gadj -q || return
+  python3 - gadj/gradients.json <<'PY' || fail "grad --adjoint-image gradients.json"
+import json, math, sys
+j = json.load(open(sys.argv[1]))
+assert "loss" not in j and math.isfinite(j["functional"]) and j["functional"] > 0, j
+assert j["parameters"]["light.radiance"]["grad_norm"] > 0
+PY
+  [ -f gadj/image.exr ] || fail "grad --adjoint-image: no image.exr"
+}
+in_background good_grad_adjoint
+
+# check: a table, exit 0.
+good_check() {
+  expect_ok check check "$cornell" --rr-depth 0 --resolution 16x16 --spp 2 --param light.radiance --target t16.exr || return
+  grep -qE '^dir +adjoint +finite_diff +rel_error' out.check || fail "check: no table header: $(cat out.check)"
+  [ "$(grep -cE '^[0-9]+ +-?[0-9.]+e[-+][0-9]+ +-?[0-9.]+e[-+][0-9]+ +[0-9.]+e[-+][0-9]+$' out.check)" -eq 4 ] ||
+    fail "check: expected 4 table rows: $(cat out.check)"
+  grep -q '^ok: 4 direction' out.check || fail "check: no ok line: $(cat out.check)"
+}
+in_background good_check
+
+wait
+# Error cases write nothing.
+for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
+for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9; do
+  [ ! -e "$d" ] || fail "an error case created output directory $d"
+done
+
+if [ -s "$tmp/failures" ]; then
+  cat "$tmp/failures"
+  echo "test_errors: $(grep -c '^FAIL:' "$tmp/failures") failure(s) in $cases cases"
+  exit 1
+fi
+echo "test_errors: OK ($cases cases)"
