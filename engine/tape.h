@@ -101,6 +101,23 @@ inline Var log(const Var& a) { return record(std::log(a.v), a, 1.f / a.v); }
 inline Var abs(const Var& a) { return record(std::abs(a.v), a, a.v < 0 ? -1.f : 1.f); }
 inline Var pow(const Var& a, float e) { return record(std::pow(a.v, e), a, e * std::pow(a.v, e - 1.f)); }
 
+// Reverse sweep: propagates the adjoints in `adjoint` (one per entry, seeded at the outputs) from
+// the last entry to the first, and calls leaf(flat_parameter_index, adjoint · weight) per leaf.
+template <class LeafFn>
+void reverse_sweep(const Tape& tape, std::vector<float>& adjoint, LeafFn&& leaf) {
+  for (size_t i = tape.entries.size(); i-- > 0;) {
+    const float g = adjoint[i];
+    if (g == 0.f) continue;
+    const TapeEntry& e = tape.entries[i];
+    if (e.a == Tape::kLeaf) {
+      leaf(e.b, g * e.da);
+      continue;
+    }
+    if (e.a != Tape::kNone) adjoint[e.a] += g * e.da;
+    if (e.b != Tape::kNone) adjoint[e.b] += g * e.db;
+  }
+}
+
 // Parameter reads become leaves when the parameter wants a gradient, constants otherwise.
 template <>
 struct ParamLoad<Var> {

@@ -140,18 +140,10 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
         for (int c = 0; c < 3; ++c)
           if (outputs[p].index[c] != Tape::kNone) adj[outputs[p].index[c]] += adjoint.data[p * 3 + size_t(c)];
     GradientAccumulator& grads = sink.local();
-    for (size_t i = tape->entries.size(); i-- > 0;) {
-      const float g = adj[i];
-      if (g == 0.f) continue;
-      const TapeEntry& e = tape->entries[i];
-      if (e.a == Tape::kLeaf) {
-        size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(e.b)) - offsets.begin()) - 1;
-        grads.add(int(handle), size_t(e.b) - offsets[handle], g * e.da);
-        continue;
-      }
-      if (e.a != Tape::kNone) adj[e.a] += g * e.da;
-      if (e.b != Tape::kNone) adj[e.b] += g * e.db;
-    }
+    reverse_sweep(*tape, adj, [&](uint32_t flat, float g) {
+      size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(flat)) - offsets.begin()) - 1;
+      grads.add(int(handle), size_t(flat) - offsets[handle], g);
+    });
   });
   sink.reduce();
   result.adjoint_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
