@@ -29,12 +29,33 @@ struct ReplayObserver {
   Vec3f delta;           // ∂loss/∂(this sample's radiance)
   Vec3f total_radiance;  // this sample's primal estimate, from the first run of the same path
 
+  // BSDF gradients of one vertex (from NEE and from the BSDF sample) are summed and pushed into
+  // the textures once, when the path moves on: half the texel scatters of doing it per event.
+  const VertexRef* pending = nullptr;
+  VertexRef pending_ref;
+  BsdfGradient pending_gradient;
+
+  void add_bsdf_adjoint(const VertexRef& v, const Vec3f& wi, const Vec3f& adjoint) {
+    if (!pending || pending_ref.vertex != v.vertex) {
+      flush();
+      pending_ref = v;
+      pending = &pending_ref;
+      pending_gradient = {};
+    }
+    pending_gradient += v.material->bsdf_backprop(*v.value, v.wo, wi, adjoint);
+  }
+  // Must be called once the path is done.
+  void flush() {
+    if (pending) pending_ref.material->texture_backprop(scene.params, pending_ref.uv, pending_gradient, grads);
+    pending = nullptr;
+  }
+
   void emission(const EmissionRef& e, const Vec3f& weight, const Vec3f&) {
     emitter_backprop(scene, e, delta * weight, grads);
   }
   void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
            const Vec3f& emitter_weight, const Vec3f&) {
-    if (v.material->wants_grad(grads)) v.material->backprop(scene.params, v.uv, v.wo, wi, delta * bsdf_weight, grads);
+    if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
     emitter_backprop(scene, e, delta * emitter_weight, grads);
   }
   void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
@@ -43,7 +64,7 @@ struct ReplayObserver {
     const Vec3f radiance_to_come = total_radiance - radiance_so_far;
     Vec3f adjoint;
     for (int c = 0; c < 3; ++c) adjoint[c] = f[c] != 0.f ? delta[c] * radiance_to_come[c] / f[c] : 0.f;
-    v.material->backprop(scene.params, v.uv, v.wo, wi, adjoint, grads);
+    add_bsdf_adjoint(v, wi, adjoint);
   }
 };
 
@@ -68,9 +89,9 @@ struct RadiativeObserver {
     PathSampler independent(mix64(seed ^ 0x5eed0fadull) + uint64_t(vertex), pixel, sample);
     NoObserver none;
     Vec3f incident = trace_path<float>(scene, PathStart{next, vertex + 1, pdf}, independent, none);
-    Vec3f adjoint = delta * beta_before * incident / (pdf * q);
-    v.material->backprop(scene.params, v.uv, v.wo, wi, adjoint, grads);
+    local.add_bsdf_adjoint(v, wi, delta * beta_before * incident / (pdf * q));
   }
+  void flush() { local.flush(); }
 };
 
 }  // namespace
@@ -115,9 +136,11 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
           if (method == AdjointMethod::Prb) {
             ReplayObserver replay{scene, grads, delta, radiance[size_t(s)]};
             trace_path<float>(scene, start_of(sampler), sampler, replay);
+            replay.flush();
           } else {
             RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s)};
             trace_path<float>(scene, start_of(sampler), sampler, rb);
+            rb.flush();
           }
         }
       }

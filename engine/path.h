@@ -30,8 +30,10 @@ struct EmissionRef {
 // What a derivative shader needs about a scattering vertex.
 struct VertexRef {
   const Material* material = nullptr;
+  const BsdfValue<float>* value = nullptr;  // the material's textures evaluated at uv (detached)
   Vec2f uv;
   Vec3f wo;  // local shading frame
+  int vertex = 0;
 };
 
 // Observer that ignores everything (primal and taped modes).
@@ -132,7 +134,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (material.two_sided && dot(normal, wo_world) < 0.f) normal = -normal;
     const Frame frame(normal);
     const Vec3f wo = frame.to_local(wo_world);
-    const VertexRef vref{&material, sp.uv, wo};
+    const VertexRef vref{&material, &bsdf_detached, sp.uv, wo, vertex};
 
     // Next-event estimation: one emitter chosen uniformly, one point on it.
     if (area_count > 0 || scene.environment.present) {

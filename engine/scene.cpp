@@ -14,6 +14,16 @@ float Mesh::triangle_area(size_t t) const {
 
 void Scene::prepare() {
   for (auto& cam : cameras) cam.update();
+  for (auto& m : meshes) {
+    m.face_normals.resize(m.triangle_count());
+    for (size_t t = 0; t < m.triangle_count(); ++t) {
+      const Vec3f &a = m.positions[m.indices[3 * t]], &b = m.positions[m.indices[3 * t + 1]],
+                  &c = m.positions[m.indices[3 * t + 2]];
+      const Vec3f n = cross(b - a, c - a);
+      const float len = length(n);
+      m.face_normals[t] = len > 0.f ? n / len : Vec3f(0.f, 0.f, 1.f);  // degenerate: never hit in practice
+    }
+  }
   for (auto& e : area_emitters) {
     const Mesh& m = meshes[size_t(e.mesh)];
     std::vector<double> areas(m.triangle_count());
@@ -40,7 +50,7 @@ SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {
   SurfacePoint sp;
   sp.mesh = hit.mesh;
   sp.p = ray.origin + ray.direction * hit.t;
-  sp.geometric_normal = normalize(cross(m.positions[i1] - m.positions[i0], m.positions[i2] - m.positions[i0]));
+  sp.geometric_normal = m.face_normals[size_t(hit.triangle)];
   if (!m.normals.empty()) {
     Vec3f n = m.normals[i0] * b0 + m.normals[i1] * hit.b1 + m.normals[i2] * hit.b2;
     float len = length(n);
@@ -70,7 +80,7 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
   const uint32_t i0 = m.indices[3 * t], i1 = m.indices[3 * t + 1], i2 = m.indices[3 * t + 2];
   EmitterSample s;
   s.point = m.positions[i0] * b0 + m.positions[i1] * b1 + m.positions[i2] * b2;
-  Vec3f n = normalize(cross(m.positions[i1] - m.positions[i0], m.positions[i2] - m.positions[i0]));
+  const Vec3f n = m.face_normals[t];
   Vec3f shading = n;
   if (!m.normals.empty()) shading = normalize(m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2);
   if (!m.uvs.empty())

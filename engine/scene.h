@@ -22,6 +22,7 @@ struct Mesh {
   std::vector<Vec3f> normals;  // per vertex, or empty (flat shading)
   std::vector<Vec2f> uvs;      // per vertex, or empty (uv = barycentrics)
   std::vector<uint32_t> indices;
+  std::vector<Vec3f> face_normals;  // unit (p1 − p0) × (p2 − p0) per triangle, built by Scene::prepare
   int material = -1;
   int emitter = -1;  // index into Scene::area_emitters, or -1
   size_t vertex_count() const { return positions.empty() ? 0 : positions.size() - 1; }

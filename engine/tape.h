@@ -7,6 +7,7 @@
 // element. One tape per worker thread; `current_tape` selects it.
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
@@ -20,13 +21,22 @@ struct TapeEntry {
 };
 static_assert(sizeof(TapeEntry) == 16);
 
+// Entries live in fixed-size chunks: growing never copies or over-allocates (a doubling vector
+// would briefly need three times the tape), so the baseline's memory is the tape itself.
 struct Tape {
   static constexpr uint32_t kNone = 0xffffffffu, kLeaf = 0xfffffffeu;
-  std::vector<TapeEntry> entries;
+  static constexpr size_t kChunkBits = 18, kChunk = size_t(1) << kChunkBits;  // 4 MB per chunk
+  std::vector<std::unique_ptr<TapeEntry[]>> chunks;
+  size_t count = 0;
+
   uint32_t push(uint32_t a, float da, uint32_t b, float db) {
-    entries.push_back({a, b, da, db});
-    return uint32_t(entries.size() - 1);
+    if ((count & (kChunk - 1)) == 0 && (count >> kChunkBits) == chunks.size())
+      chunks.push_back(std::make_unique<TapeEntry[]>(kChunk));
+    chunks[count >> kChunkBits][count & (kChunk - 1)] = {a, b, da, db};
+    return uint32_t(count++);
   }
+  size_t size() const { return count; }
+  const TapeEntry& operator[](size_t i) const { return chunks[i >> kChunkBits][i & (kChunk - 1)]; }
 };
 
 inline thread_local Tape* current_tape = nullptr;
@@ -105,10 +115,10 @@ inline Var pow(const Var& a, float e) { return record(std::pow(a.v, e), a, e * s
 // the last entry to the first, and calls leaf(flat_parameter_index, adjoint · weight) per leaf.
 template <class LeafFn>
 void reverse_sweep(const Tape& tape, std::vector<float>& adjoint, LeafFn&& leaf) {
-  for (size_t i = tape.entries.size(); i-- > 0;) {
+  for (size_t i = tape.size(); i-- > 0;) {
     const float g = adjoint[i];
     if (g == 0.f) continue;
-    const TapeEntry& e = tape.entries[i];
+    const TapeEntry& e = tape[i];
     if (e.a == Tape::kLeaf) {
       leaf(e.b, g * e.da);
       continue;

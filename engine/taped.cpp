@@ -75,7 +75,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
     if (over_budget.load(std::memory_order_relaxed)) return;
     Tape& tape = tapes.local();
     current_tape = &tape;
-    const size_t before = tape.entries.size();
+    const size_t before = tape.size();
     NoObserver none;
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
@@ -96,7 +96,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
       }
     // Memory guard: project the final size from the pixels recorded so far, and stop as soon as
     // the projection or the actual size passes the budget.
-    uint64_t total = entries += tape.entries.size() - before;
+    uint64_t total = entries += tape.size() - before;
     uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
     double projected = double(total) * double(kBytesPerEntry) * double(pixels) / double(done);
     projected_bytes.store(projected);
@@ -134,7 +134,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   std::vector<Tape*> all_tapes;
   for (auto& t : tapes) all_tapes.push_back(&t);
   tbb::parallel_for_each(all_tapes.begin(), all_tapes.end(), [&](Tape* tape) {
-    std::vector<float> adj(tape->entries.size(), 0.f);
+    std::vector<float> adj(tape->size(), 0.f);
     for (size_t p = 0; p < pixels; ++p)
       if (outputs[p].tape == tape)
         for (int c = 0; c < 3; ++c)

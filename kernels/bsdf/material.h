@@ -56,6 +56,19 @@ struct BsdfValue {
   }
 };
 
+// Gradient of ⟨adjoint, eval⟩ with respect to a BsdfValue's inputs (what a BSDF's derivative
+// shader returns). Sums of them are meaningful: the chain rule into textures is linear.
+struct BsdfGradient {
+  Vec3f albedo{0.f}, specular{0.f};
+  float roughness = 0.f;
+  BsdfGradient& operator+=(const BsdfGradient& o) {
+    albedo += o.albedo;
+    specular += o.specular;
+    roughness += o.roughness;
+    return *this;
+  }
+};
+
 struct Material {
   std::string name;
   BsdfType type = BsdfType::Diffuse;
@@ -89,30 +102,37 @@ struct Material {
     return at<float>(s, uv).pdf(wo, wi);
   }
 
+  // The BSDF's derivative shader at an already evaluated value: ⟨adjoint, ∂eval/∂input⟩.
+  BsdfGradient bsdf_backprop(const BsdfValue<float>& v, const Vec3f& wo, const Vec3f& wi, const Vec3f& adjoint) const {
+    BsdfGradient g;
+    switch (type) {
+      case BsdfType::Diffuse: g.albedo = diffuse_backprop({v.albedo}, wo, wi, adjoint).albedo; break;
+      case BsdfType::RoughConductor: {
+        auto c = roughconductor_backprop({v.specular, v.roughness}, wo, wi, adjoint);
+        g.specular = c.specular, g.roughness = c.roughness;
+        break;
+      }
+      case BsdfType::RoughPlastic: {
+        auto c = roughplastic_backprop({v.albedo, v.roughness, ior}, wo, wi, adjoint);
+        g.albedo = c.albedo, g.roughness = c.roughness;
+        break;
+      }
+    }
+    return g;
+  }
+
+  // The chain rule from a BSDF gradient into the textures read at uv.
+  void texture_backprop(const ParamStore& s, Vec2f uv, const BsdfGradient& g, GradientAccumulator& grads) const {
+    if (type != BsdfType::RoughConductor) albedo.backprop(s, uv, g.albedo, grads);
+    if (type == BsdfType::RoughConductor) specular.backprop(s, uv, g.specular, grads);
+    if (type != BsdfType::Diffuse) roughness.backprop_scalar(s, uv, g.roughness, grads);
+  }
+
   // Adds ⟨adjoint, ∂eval/∂θ⟩ into the gradient of every texel/constant this material read: the
   // BSDF's derivative shader, then the chain rule into the textures.
   void backprop(const ParamStore& s, Vec2f uv, const Vec3f& wo, const Vec3f& wi, const Vec3f& adjoint,
                 GradientAccumulator& grads) const {
-    const BsdfValue<float> v = at<float>(s, uv);
-    switch (type) {
-      case BsdfType::Diffuse: {
-        auto g = diffuse_backprop({v.albedo}, wo, wi, adjoint);
-        albedo.backprop(s, uv, g.albedo, grads);
-        break;
-      }
-      case BsdfType::RoughConductor: {
-        auto g = roughconductor_backprop({v.specular, v.roughness}, wo, wi, adjoint);
-        specular.backprop(s, uv, g.specular, grads);
-        roughness.backprop_scalar(s, uv, g.roughness, grads);
-        break;
-      }
-      case BsdfType::RoughPlastic: {
-        auto g = roughplastic_backprop({v.albedo, v.roughness, ior}, wo, wi, adjoint);
-        albedo.backprop(s, uv, g.albedo, grads);
-        roughness.backprop_scalar(s, uv, g.roughness, grads);
-        break;
-      }
-    }
+    texture_backprop(s, uv, bsdf_backprop(at<float>(s, uv), wo, wi, adjoint), grads);
   }
 
   // Whether any parameter this material reads wants a gradient (skips needless shader work).

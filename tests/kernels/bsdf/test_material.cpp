@@ -81,7 +81,7 @@ void check_material(const MaterialCase& mc, uint64_t seed) {
       current_tape = &tape;
       const Spectrum<Var> f = m.eval<Var>(store, uv, wo, wi);
       current_tape = nullptr;
-      std::vector<float> seeds(tape.entries.size(), 0.f);
+      std::vector<float> seeds(tape.size(), 0.f);
       for (int ch = 0; ch < 3; ++ch)
         if (f[ch].active()) seeds[f[ch].index] += adjoint[ch];
       std::vector<double> taped(p.size(), 0.0);

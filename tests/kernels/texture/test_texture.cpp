@@ -72,6 +72,18 @@ struct BitmapCase {
   Wrap wrap;
 };
 
+// The RGB read (eval/backprop) and the scalar read of channel 0 (eval_scalar/backprop_scalar,
+// as roughness uses it), both against central differences.
+void check_rgb_and_scalar_reads(ParamStore& store, int h, const TextureSlot& slot, Vec2f uv, const Vec3f& adjoint,
+                                const std::string& what) {
+  check_texture_gradient(
+      store, h, what + " (eval)", [&] { return adjoint_dot(adjoint, slot.eval<double>(store, uv)); },
+      [&](GradientAccumulator& g) { slot.backprop(store, uv, adjoint, g); });
+  check_texture_gradient(
+      store, h, what + " (eval_scalar)", [&] { return double(adjoint.x) * slot.eval_scalar<double>(store, uv); },
+      [&](GradientAccumulator& g) { slot.backprop_scalar(store, uv, adjoint.x, g); });
+}
+
 }  // namespace
 
 TEST_CASE("bitmap lookups follow the texel-centre convention", "[texture]") {
@@ -125,14 +137,7 @@ TEST_CASE("bitmap backprop matches finite differences per texel", "[texture][bac
     for (const Vec2f uv : lookup_points(bc.shape[1], bc.shape[0], rng)) {
       const Vec3f adjoint(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)));
       const std::string what = describe(store[h], bc.wrap, uv, adjoint);
-      // RGB read.
-      check_texture_gradient(
-          store, h, what + " (eval)", [&] { return adjoint_dot(adjoint, slot.eval<double>(store, uv)); },
-          [&](GradientAccumulator& g) { slot.backprop(store, uv, adjoint, g); });
-      // Scalar read (channel 0), as roughness uses it.
-      check_texture_gradient(
-          store, h, what + " (eval_scalar)", [&] { return double(adjoint.x) * slot.eval_scalar<double>(store, uv); },
-          [&](GradientAccumulator& g) { slot.backprop_scalar(store, uv, adjoint.x, g); });
+      check_rgb_and_scalar_reads(store, h, slot, uv, adjoint, what);
     }
   }
 }
@@ -162,12 +167,7 @@ TEST_CASE("constant texture backprop matches finite differences", "[texture][bac
       const Vec3f adjoint(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)));
       const Vec2f uv{float(rng.uniform(-1, 2)), float(rng.uniform(-1, 2))};
       const std::string what = "constant of size " + std::to_string(size);
-      check_texture_gradient(
-          store, h, what + " (eval)", [&] { return adjoint_dot(adjoint, slot.eval<double>(store, uv)); },
-          [&](GradientAccumulator& g) { slot.backprop(store, uv, adjoint, g); });
-      check_texture_gradient(
-          store, h, what + " (eval_scalar)", [&] { return double(adjoint.x) * slot.eval_scalar<double>(store, uv); },
-          [&](GradientAccumulator& g) { slot.backprop_scalar(store, uv, adjoint.x, g); });
+      check_rgb_and_scalar_reads(store, h, slot, uv, adjoint, what);
     }
     const Vec3f v = slot.eval<float>(store, {0.3f, 0.3f});
     CHECK(v.x == store[h].value[0]);
