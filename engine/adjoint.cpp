@@ -80,7 +80,8 @@ struct RadiativeObserver {
   ReplayObserver local{scene, grads, delta, Vec3f(0.f)};
 
   void emission(const EmissionRef& e, const Vec3f& w, const Vec3f& c) { local.emission(e, w, c); }
-  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bw, const Vec3f& ew, const Vec3f& c) {
+  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bw, const Vec3f& ew,
+           const Vec3f& c) {
     local.nee(v, wi, e, bw, ew, c);
   }
   void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f&, float pdf, float q, const Vec3f& beta_before,
@@ -103,8 +104,8 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   GradientSink sink(scene.params);
   // Per-thread scratch for one pixel's sample radiances (reused; never allocated per sample).
   tbb::enumerable_thread_specific<std::vector<Vec3f>> scratch([&] { return std::vector<Vec3f>(size_t(o.spp)); });
-  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb", uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp),
-                    "spp", o.progress);
+  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
+                    uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
   std::atomic<uint64_t> rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     const uint64_t rays_before = Geometry::thread_ray_count();

@@ -41,10 +41,10 @@ void Geometry::build(const std::vector<Mesh>& meshes) {
     const Mesh& m = meshes[i];
     RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_TRIANGLE);
     // Shared buffers: Embree reads our arrays in place (positions are padded by one element).
-    rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, m.positions.data(), 0,
-                               sizeof(Vec3f), m.vertex_count());
-    rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, m.indices.data(), 0,
-                               3 * sizeof(uint32_t), m.triangle_count());
+    rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, m.positions.data(), 0, sizeof(Vec3f),
+                               m.vertex_count());
+    rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, m.indices.data(), 0, 3 * sizeof(uint32_t),
+                               m.triangle_count());
     rtcCommitGeometry(g);
     // geomID == index into meshes, so hits map straight back to our data.
     rtcAttachGeometryByID(scene_, g, unsigned(i));

@@ -25,9 +25,12 @@ GradientMethod parse_method(const std::string& name) {
 
 const char* method_name(GradientMethod m) {
   switch (m) {
-    case GradientMethod::Prb: return "prb";
-    case GradientMethod::Rb: return "rb";
-    case GradientMethod::Taped: return "taped";
+    case GradientMethod::Prb:
+      return "prb";
+    case GradientMethod::Rb:
+      return "rb";
+    case GradientMethod::Taped:
+      return "taped";
   }
   return "?";
 }
@@ -56,13 +59,15 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
   if (rq.adjoint_image) {
     const Image& a = *rq.adjoint_image;
     if (rq.adjoint_seed == rq.pass.seed) {
-      PassStats s = backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }, &result.image);
+      PassStats s = backward(
+          scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }, &result.image);
       result.adjoint_seconds = s.seconds;
     } else {
       PassStats ps;
       result.image = render(scene, rq.pass, &ps);
       result.primal_seconds = ps.seconds;
-      result.adjoint_seconds = backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }).seconds;
+      result.adjoint_seconds =
+          backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }).seconds;
     }
     result.loss = functional(a, result.image);
     return result;
@@ -134,7 +139,8 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     for (size_t i = 0; i < v.size(); ++i) predicted += double(gradient[i]) * (double(plus[i]) - double(minus[i]));
     row.adjoint = predicted / (2 * eps);
     row.finite_difference = (loss_at(plus) - loss_at(minus)) / (2 * eps);
-    row.relative_error = std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
+    row.relative_error =
+        std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
     rows.push_back(row);
   }
   scene.params[h].value = theta;
@@ -156,7 +162,8 @@ void dump_parameter_values(const ParamStore& params, const std::string& dir) {
   write_text_atomic((fs::path(dir) / "params.json").string(), small.dump(1) + "\n");
 }
 
-void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const GradientResult& r, const std::string& dir) {
+void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const GradientResult& r,
+                            const std::string& dir) {
   fs::create_directories(dir);
   write_image((fs::path(dir) / "image.exr").string(), r.image);
   nlohmann::json j;
@@ -172,7 +179,8 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
   j["adjoint_seed"] = rq.adjoint_seed;
   j["max_depth"] = scene.settings.max_depth;
   j["rr_depth"] = scene.settings.rr_depth;
-  j["timings"] = {{"primal_seconds", r.primal_seconds}, {"adjoint_seconds", r.adjoint_seconds},
+  j["timings"] = {{"primal_seconds", r.primal_seconds},
+                  {"adjoint_seconds", r.adjoint_seconds},
                   {"total_seconds", r.primal_seconds + r.adjoint_seconds}};
   if (rq.method == GradientMethod::Taped) j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}};
   nlohmann::json params = nlohmann::json::object();

@@ -14,7 +14,9 @@ struct Image {
 
   Image() = default;
   Image(int w, int h, int c = 3) : width(w), height(h), channels(c), data(size_t(w) * size_t(h) * size_t(c), 0.f) {}
-  float& at(int x, int y, int c) { return data[(size_t(y) * size_t(width) + size_t(x)) * size_t(channels) + size_t(c)]; }
+  float& at(int x, int y, int c) {
+    return data[(size_t(y) * size_t(width) + size_t(x)) * size_t(channels) + size_t(c)];
+  }
   float at(int x, int y, int c) const {
     return data[(size_t(y) * size_t(width) + size_t(x)) * size_t(channels) + size_t(c)];
   }

@@ -22,7 +22,9 @@ class Node {
   Node(const json& j, std::string pointer, const std::string& file) : j_(j), ptr_(std::move(pointer)), file_(file) {
     if (!j_.is_object()) fail("expected an object");
   }
-  [[noreturn]] void fail(const std::string& msg) const { throw file_error(file_, (ptr_.empty() ? "/" : ptr_) + ": " + msg); }
+  [[noreturn]] void fail(const std::string& msg) const {
+    throw file_error(file_, (ptr_.empty() ? "/" : ptr_) + ": " + msg);
+  }
   [[noreturn]] void fail_at(const std::string& key, const std::string& msg) const {
     throw file_error(file_, ptr_ + "/" + key + ": " + msg);
   }
@@ -124,7 +126,6 @@ inline std::string line_col(const std::string& text, size_t byte) {
   return std::to_string(line) + ":" + std::to_string(col > 1 ? col - 1 : 1);
 }
 
-
 // Parses `text` (the contents of `file`); syntax errors report line:column.
 inline json parse_json_text(const std::string& text, const std::string& file) {
   try {
@@ -140,5 +141,9 @@ inline json parse_json_text(const std::string& text, const std::string& file) {
     throw file_error(file, "invalid JSON (" + msg + ")");
   }
 }
+
+struct Camera;
+// Reads a camera object (scene format, scenes/README.md); used by scenes and optimizer configs.
+Camera parse_camera(Node& n, const std::string& default_name);
 
 }  // namespace bl

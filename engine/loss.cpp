@@ -15,9 +15,12 @@ LossType parse_loss(const std::string& name) {
 
 const char* loss_name(LossType t) {
   switch (t) {
-    case LossType::L2: return "l2";
-    case LossType::L1: return "l1";
-    case LossType::RelativeL2: return "rel_l2";
+    case LossType::L2:
+      return "l2";
+    case LossType::L1:
+      return "l1";
+    case LossType::RelativeL2:
+      return "rel_l2";
   }
   return "?";
 }

@@ -39,9 +39,24 @@ struct Vec3 {
 
   T& operator[](int i) { return i == 0 ? x : (i == 1 ? y : z); }
   const T& operator[](int i) const { return i == 0 ? x : (i == 1 ? y : z); }
-  Vec3& operator+=(const Vec3& o) { x = x + o.x; y = y + o.y; z = z + o.z; return *this; }
-  Vec3& operator-=(const Vec3& o) { x = x - o.x; y = y - o.y; z = z - o.z; return *this; }
-  Vec3& operator*=(const Vec3& o) { x = x * o.x; y = y * o.y; z = z * o.z; return *this; }
+  Vec3& operator+=(const Vec3& o) {
+    x = x + o.x;
+    y = y + o.y;
+    z = z + o.z;
+    return *this;
+  }
+  Vec3& operator-=(const Vec3& o) {
+    x = x - o.x;
+    y = y - o.y;
+    z = z - o.z;
+    return *this;
+  }
+  Vec3& operator*=(const Vec3& o) {
+    x = x * o.x;
+    y = y * o.y;
+    z = z * o.z;
+    return *this;
+  }
 };
 
 using Vec3f = Vec3<float>;
@@ -54,28 +69,68 @@ struct Vec2f {
   float x = 0, y = 0;
 };
 
-template <class T> Vec3<T> operator+(const Vec3<T>& a, const Vec3<T>& b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-template <class T> Vec3<T> operator-(const Vec3<T>& a, const Vec3<T>& b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-template <class T> Vec3<T> operator*(const Vec3<T>& a, const Vec3<T>& b) { return {a.x * b.x, a.y * b.y, a.z * b.z}; }
-template <class T> Vec3<T> operator/(const Vec3<T>& a, const Vec3<T>& b) { return {a.x / b.x, a.y / b.y, a.z / b.z}; }
-template <class T> Vec3<T> operator-(const Vec3<T>& a) { return {-a.x, -a.y, -a.z}; }
-template <class T, class S> Vec3<T> operator*(const Vec3<T>& a, const S& s) { return {a.x * s, a.y * s, a.z * s}; }
-template <class T, class S> Vec3<T> operator*(const S& s, const Vec3<T>& a) { return {s * a.x, s * a.y, s * a.z}; }
-template <class T, class S> Vec3<T> operator/(const Vec3<T>& a, const S& s) { return {a.x / s, a.y / s, a.z / s}; }
+template <class T>
+Vec3<T> operator+(const Vec3<T>& a, const Vec3<T>& b) {
+  return {a.x + b.x, a.y + b.y, a.z + b.z};
+}
+template <class T>
+Vec3<T> operator-(const Vec3<T>& a, const Vec3<T>& b) {
+  return {a.x - b.x, a.y - b.y, a.z - b.z};
+}
+template <class T>
+Vec3<T> operator*(const Vec3<T>& a, const Vec3<T>& b) {
+  return {a.x * b.x, a.y * b.y, a.z * b.z};
+}
+template <class T>
+Vec3<T> operator/(const Vec3<T>& a, const Vec3<T>& b) {
+  return {a.x / b.x, a.y / b.y, a.z / b.z};
+}
+template <class T>
+Vec3<T> operator-(const Vec3<T>& a) {
+  return {-a.x, -a.y, -a.z};
+}
+template <class T, class S>
+Vec3<T> operator*(const Vec3<T>& a, const S& s) {
+  return {a.x * s, a.y * s, a.z * s};
+}
+template <class T, class S>
+Vec3<T> operator*(const S& s, const Vec3<T>& a) {
+  return {s * a.x, s * a.y, s * a.z};
+}
+template <class T, class S>
+Vec3<T> operator/(const Vec3<T>& a, const S& s) {
+  return {a.x / s, a.y / s, a.z / s};
+}
 
 // Mixed products used where a detached float vector meets an active one.
-template <class T> Vec3<T> mul(const Vec3<T>& a, const Vec3f& b) { return {a.x * b.x, a.y * b.y, a.z * b.z}; }
+template <class T>
+Vec3<T> mul(const Vec3<T>& a, const Vec3f& b) {
+  return {a.x * b.x, a.y * b.y, a.z * b.z};
+}
 
-template <class T> T dot(const Vec3<T>& a, const Vec3<T>& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-template <class T> Vec3<T> cross(const Vec3<T>& a, const Vec3<T>& b) {
+template <class T>
+T dot(const Vec3<T>& a, const Vec3<T>& b) {
+  return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+template <class T>
+Vec3<T> cross(const Vec3<T>& a, const Vec3<T>& b) {
   return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
-template <class T> T length(const Vec3<T>& a) { return sqrt(dot(a, a)); }
-template <class T> Vec3<T> normalize(const Vec3<T>& a) { return a / length(a); }
+template <class T>
+T length(const Vec3<T>& a) {
+  return sqrt(dot(a, a));
+}
+template <class T>
+Vec3<T> normalize(const Vec3<T>& a) {
+  return a / length(a);
+}
 inline float max_component(const Vec3f& a) { return std::max(a.x, std::max(a.y, a.z)); }
 inline bool is_zero(const Vec3f& a) { return a.x == 0.f && a.y == 0.f && a.z == 0.f; }
 inline bool is_finite(const Vec3f& a) { return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z); }
-template <class T> Vec3f value_of(const Vec3<T>& a) { return {value_of(a.x), value_of(a.y), value_of(a.z)}; }
+template <class T>
+Vec3f value_of(const Vec3<T>& a) {
+  return {value_of(a.x), value_of(a.y), value_of(a.z)};
+}
 inline float luminance(const Vec3f& c) { return 0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z; }
 
 // Orthonormal frame around a unit normal (Duff et al. 2017, "Building an orthonormal basis, revisited").
@@ -122,8 +177,8 @@ struct Transform {
 };
 
 inline Vec3f Transform::normal(const Vec3f& n) const {
-  const float a = m[0][0], b = m[0][1], c = m[0][2], d = m[1][0], e = m[1][1], f = m[1][2], g = m[2][0],
-              h = m[2][1], i = m[2][2];
+  const float a = m[0][0], b = m[0][1], c = m[0][2], d = m[1][0], e = m[1][1], f = m[1][2], g = m[2][0], h = m[2][1],
+              i = m[2][2];
   // Cofactor matrix = det * inverse transpose; the scale does not matter once normalized.
   Vec3f r{(e * i - f * h) * n.x + (f * g - d * i) * n.y + (d * h - e * g) * n.z,
           (c * h - b * i) * n.x + (a * i - c * g) * n.y + (b * g - a * h) * n.z,
@@ -134,21 +189,31 @@ inline Vec3f Transform::normal(const Vec3f& n) const {
 }
 inline Transform Transform::scale(const Vec3f& s) {
   Transform t;
-  t.m[0][0] = s.x; t.m[1][1] = s.y; t.m[2][2] = s.z;
+  t.m[0][0] = s.x;
+  t.m[1][1] = s.y;
+  t.m[2][2] = s.z;
   return t;
 }
 inline Transform Transform::translate(const Vec3f& v) {
   Transform t;
-  t.m[0][3] = v.x; t.m[1][3] = v.y; t.m[2][3] = v.z;
+  t.m[0][3] = v.x;
+  t.m[1][3] = v.y;
+  t.m[2][3] = v.z;
   return t;
 }
 inline Transform Transform::rotate(const Vec3f& axis_in, float degrees) {
   Vec3f a = normalize(axis_in);
   float th = degrees * kPi / 180.f, c = std::cos(th), s = std::sin(th), C = 1 - c;
   Transform t;
-  t.m[0][0] = a.x * a.x * C + c;       t.m[0][1] = a.x * a.y * C - a.z * s; t.m[0][2] = a.x * a.z * C + a.y * s;
-  t.m[1][0] = a.y * a.x * C + a.z * s; t.m[1][1] = a.y * a.y * C + c;       t.m[1][2] = a.y * a.z * C - a.x * s;
-  t.m[2][0] = a.z * a.x * C - a.y * s; t.m[2][1] = a.z * a.y * C + a.x * s; t.m[2][2] = a.z * a.z * C + c;
+  t.m[0][0] = a.x * a.x * C + c;
+  t.m[0][1] = a.x * a.y * C - a.z * s;
+  t.m[0][2] = a.x * a.z * C + a.y * s;
+  t.m[1][0] = a.y * a.x * C + a.z * s;
+  t.m[1][1] = a.y * a.y * C + c;
+  t.m[1][2] = a.y * a.z * C - a.x * s;
+  t.m[2][0] = a.z * a.x * C - a.y * s;
+  t.m[2][1] = a.z * a.y * C + a.x * s;
+  t.m[2][2] = a.z * a.z * C + c;
   return t;
 }
 

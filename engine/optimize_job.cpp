@@ -50,9 +50,10 @@ struct Config {
   std::string scene;
   std::vector<std::string> scene_overrides;
   std::vector<OptimizedParam> params;
-  std::vector<std::string> views;                  // camera names or indices
+  std::vector<std::string> views;                   // camera names or indices
+  std::vector<Camera> extra_cameras;                // camera poses given in the config
   std::map<std::string, std::string> target_files;  // camera name → image
-  std::vector<std::string> reference_overrides;    // "NAME=VALUE" for rendering targets
+  std::vector<std::string> reference_overrides;     // "NAME=VALUE" for rendering targets
   int reference_spp = 64;
   int views_per_iteration = 0;  // 0 = all
   LossType loss = LossType::L2;
@@ -118,8 +119,20 @@ Config parse_config(const std::string& path) {
 
   Node views = n.child("views");
   const json& cams = views.at("cameras");
-  if (!cams.is_array() || cams.empty()) views.fail_at("cameras", "expected a non-empty list of camera names or indices");
-  for (const auto& cam : cams) c.views.push_back(cam.is_string() ? cam.get<std::string>() : cam.dump());
+  if (!cams.is_array() || cams.empty())
+    views.fail_at("cameras", "expected a non-empty list of camera names or indices");
+  for (size_t i = 0; i < cams.size(); ++i) {
+    if (cams[i].is_object()) {
+      // An extra pose, in the scene format's camera syntax.
+      Node cn(cams[i], views.pointer("cameras") + "/" + std::to_string(i), c.file);
+      c.extra_cameras.push_back(parse_camera(cn, "view" + std::to_string(i)));
+      c.views.push_back(c.extra_cameras.back().name);
+    } else if (cams[i].is_string() || cams[i].is_number_integer()) {
+      c.views.push_back(cams[i].is_string() ? cams[i].get<std::string>() : cams[i].dump());
+    } else {
+      views.fail_at("cameras/" + std::to_string(i), "expected a camera name, an index or a camera object");
+    }
+  }
   if (views.has("targets")) {
     Node t = views.child("targets");
     for (auto it = t.at_all().begin(); it != t.at_all().end(); ++it) {
@@ -173,11 +186,12 @@ Config parse_config(const std::string& path) {
         Stage stage;
         stage.until = int(s.number_required("until", 0, 1e7));
         const json& r = s.at("resolution");
-        if (!r.is_array() || r.size() != 2 || !r[0].is_number_integer() || !r[1].is_number_integer() || r[0].get<int>() < 1 ||
-            r[1].get<int>() < 1)
+        if (!r.is_array() || r.size() != 2 || !r[0].is_number_integer() || !r[1].is_number_integer() ||
+            r[0].get<int>() < 1 || r[1].get<int>() < 1)
           s.fail_at("resolution", "expected [width, height]");
         stage.width = r[0].get<int>(), stage.height = r[1].get<int>();
-        if (!op.stages.empty() && stage.until <= op.stages.back().until) s.fail_at("until", "stages must be increasing");
+        if (!op.stages.empty() && stage.until <= op.stages.back().until)
+          s.fail_at("until", "stages must be increasing");
         s.finish();
         op.stages.push_back(stage);
       }
@@ -250,7 +264,8 @@ class Job {
     resolve_views();
     for (auto& p : c_.params) {
       p.handle = scene_->params.find(p.name);
-      if (p.handle < 0) throw file_error(c_.file, "/parameters/" + p.name + ": unknown parameter (see `backlight params`)");
+      if (p.handle < 0)
+        throw file_error(c_.file, "/parameters/" + p.name + ": unknown parameter (see `backlight params`)");
       p.adam.reset(scene_->params[p.handle].size());
     }
     std::vector<std::string> names;
@@ -280,7 +295,18 @@ class Job {
 
   std::string out(const std::string& name) const { return (fs::path(c_.output) / name).string(); }
 
+  // Extra poses from the config join the scene's cameras (and the reference scene's, for targets).
+  void add_extra_cameras(Scene& scene) const {
+    for (const auto& cam : c_.extra_cameras) {
+      for (const auto& existing : scene.cameras)
+        if (existing.name == cam.name)
+          throw file_error(c_.file, "/views/cameras: camera name '" + cam.name + "' already exists in the scene");
+      scene.cameras.push_back(cam);
+    }
+  }
+
   void resolve_views() {
+    add_extra_cameras(*scene_);
     for (const auto& v : c_.views) {
       int index = -1;
       for (size_t i = 0; i < scene_->cameras.size(); ++i)
@@ -308,7 +334,8 @@ class Job {
         targets_.push_back(std::move(t));
         continue;
       }
-      if (c_.reference_overrides.empty()) throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
+      if (c_.reference_overrides.empty())
+        throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
       // Rendered from the reference variant and cached; a cache of the wrong size is re-rendered.
       const std::string cached = out("targets/" + cam.name + ".exr");
       if (fs::exists(cached)) {
@@ -322,6 +349,7 @@ class Job {
         reference = load_scene(c_.scene);
         for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
         for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
+        add_extra_cameras(*reference);
         if (c_.width)
           for (auto& rc : reference->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
       }
@@ -333,6 +361,7 @@ class Job {
     if (!c_.reference_overrides.empty()) {
       if (!reference) {
         reference = load_scene(c_.scene);
+        for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
         for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
       }
       for (auto& p : c_.params) p.ground_truth = reference->params[reference->params.find(p.name)];
@@ -369,7 +398,9 @@ class Job {
     Progress progress("optimize", uint64_t(c_.iterations), "it", !quiet_);
     progress.advance(uint64_t(start));
     auto t0 = std::chrono::steady_clock::now();
-    auto seconds = [&] { return elapsed_before_ + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
+    auto seconds = [&] {
+      return elapsed_before_ + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    };
     const int view_count = int(cameras_.size());
     const int per_iteration = c_.views_per_iteration > 0 ? std::min(c_.views_per_iteration, view_count) : view_count;
     for (int it = start; it < c_.iterations; ++it) {
@@ -403,10 +434,9 @@ class Job {
           Image img = render(*scene_, rq.pass);
           LossResult lr = compute_loss(c_.loss, img, targets_[size_t(v)]);
           PassOptions adj{cameras_[size_t(v)], c_.adjoint_spp, rq.adjoint_seed, false};
-          backward(*scene_, adj, AdjointMethod::Prb,
-                   [&](size_t p, const Vec3f&) {
-                     return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};
-                   });
+          backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
+            return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};
+          });
           loss += lr.value;
           if (k == 0) first_view = std::move(img);
         } else {
@@ -418,7 +448,8 @@ class Job {
       if (interrupted) {
         progress.finish();
         write_checkpoint(it, seconds());
-        std::fprintf(stderr, "optimize: interrupted; checkpoint of %d completed iteration(s) in %s\n", it, c_.output.c_str());
+        std::fprintf(stderr, "optimize: interrupted; checkpoint of %d completed iteration(s) in %s\n", it,
+                     c_.output.c_str());
         return 0;
       }
       loss /= per_iteration;
@@ -503,7 +534,8 @@ class Job {
     state["log"] = log;
     for (const auto& p : c_.params) {
       const Param& param = scene_->params[p.handle];
-      state["parameters"][p.name] = {{"shape", param.shape}, {"adam_t", p.adam.steps()}, {"adam_decay_t", p.adam.decay_steps()}};
+      state["parameters"][p.name] = {
+          {"shape", param.shape}, {"adam_t", p.adam.steps()}, {"adam_decay_t", p.adam.decay_steps()}};
       write_floats(tmp + "/" + p.name + ".value", param.value);
       write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m);
       write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v);
@@ -518,7 +550,8 @@ class Job {
 
   int load_checkpoint() {
     std::string dir = out("checkpoint");
-    if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json")) dir = out("checkpoint.old");
+    if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json"))
+      dir = out("checkpoint.old");
     if (!fs::exists(dir + "/state.json")) throw file_error(c_.output, "--resume: no checkpoint in this directory");
     std::ifstream f(dir + "/state.json");
     std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
@@ -600,9 +633,11 @@ class Job {
           for (int ch = 0; ch < 3; ++ch) compare.at(k * target.width + x, y, ch) = panels[k]->at(x, y, ch);
     write_image(out("compare.png"), compare);
     write_text_atomic(out("summary.json"), summary.dump(1) + "\n");
-    std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations, seconds,
-                 summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(), c_.output.c_str());
-    for (auto it = summary["parameters"].begin(); summary.contains("parameters") && it != summary["parameters"].end(); ++it)
+    std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations,
+                 seconds, summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(),
+                 c_.output.c_str());
+    for (auto it = summary["parameters"].begin(); summary.contains("parameters") && it != summary["parameters"].end();
+         ++it)
       std::fprintf(stderr, "optimize: %s RMSE vs ground truth %.4f -> %.4f (%.1fx) at %dx%d\n", it.key().c_str(),
                    it.value()["rmse_initial"].get<double>(), it.value()["rmse_final"].get<double>(),
                    it.value()["rmse_reduction"].get<double>(), it.value()["rmse_resolution"][0].get<int>(),
@@ -615,7 +650,8 @@ class Job {
 int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet) {
   if (threads < 0) throw InputError("--threads must be ≥ 1");
   std::unique_ptr<tbb::global_control> limit;
-  if (threads > 0) limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
+  if (threads > 0)
+    limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
   Config config = parse_config(config_path);
   if (!resume_dir.empty()) {
     if (!fs::is_directory(resume_dir)) throw file_error(resume_dir, "--resume: not a directory");

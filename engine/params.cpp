@@ -1,5 +1,7 @@
 #include "engine/params.h"
 
+#include <cstdlib>
+
 #include "engine/errors.h"
 
 namespace bl {
@@ -24,6 +26,14 @@ std::string ParamStore::shape_string(int handle) const {
   return s + "]";
 }
 
+size_t small_param_limit() {
+  static const size_t limit = [] {
+    const char* v = std::getenv("BACKLIGHT_SMALL_PARAM_LIMIT");
+    return v ? size_t(std::strtoull(v, nullptr, 10)) : kSmallParamLimit;
+  }();
+  return limit;
+}
+
 void ParamStore::require_grad(const std::vector<std::string>& names) {
   for (auto& p : params_) p.requires_grad = names.empty();
   for (const auto& n : names) {
@@ -34,7 +44,7 @@ void ParamStore::require_grad(const std::vector<std::string>& names) {
   small_total_ = 0;
   size_t flat = 0;
   for (auto& p : params_) {
-    p.small = p.size() <= kSmallParamLimit;
+    p.small = p.size() <= small_param_limit();
     p.small_offset = p.small ? small_total_ : 0;
     if (p.small) small_total_ += p.size();
     p.tape_offset = flat;

@@ -32,12 +32,15 @@ struct Param {
   int channels() const { return shape.back(); }
 };
 
-// Buffers of at most this many floats accumulate per thread in double precision.
+// Buffers of at most this many floats accumulate per thread in double precision. The
+// environment variable BACKLIGHT_SMALL_PARAM_LIMIT overrides it, for bench/gradient only (it
+// measures both strategies on the same parameter).
 inline constexpr size_t kSmallParamLimit = 64;
+size_t small_param_limit();
 
 class ParamStore {
  public:
-  int add(Param p);  // returns the handle; names must be unique
+  int add(Param p);                         // returns the handle; names must be unique
   int find(const std::string& name) const;  // -1 when absent
   Param& operator[](int handle) { return params_[size_t(handle)]; }
   const Param& operator[](int handle) const { return params_[size_t(handle)]; }
@@ -81,7 +84,8 @@ class GradientAccumulator {
 // One accumulator per worker thread, reduced once at the end of a pass.
 class GradientSink {
  public:
-  explicit GradientSink(ParamStore& store) : store_(store), per_thread_([&store] { return GradientAccumulator(&store); }) {}
+  explicit GradientSink(ParamStore& store)
+      : store_(store), per_thread_([&store] { return GradientAccumulator(&store); }) {}
   GradientAccumulator& local() { return per_thread_.local(); }
   // Adds the per-thread double sums into the float gradient buffers.
   void reduce();

@@ -93,9 +93,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     // Escaped: environment emission, MIS-weighted against environment sampling.
     if (hit.mesh < 0) {
       if (scene.environment.present && visible_emitter) {
-        float w = mis_bsdf_pdf > 0.f
-                      ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction))
-                      : 1.f;
+        float w =
+            mis_bsdf_pdf > 0.f ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction)) : 1.f;
         Spectrum<T> contribution = beta * scene.environment.eval<T>(params, ray.direction) * w;
         radiance += contribution;
         if constexpr (Observer::kActive)
@@ -151,9 +150,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                                                : length(es.point - origin) * (1.f - 1e-3f);
           if (!scene.geometry->occluded(origin, es.wi, tmax)) {
             EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
-            Spectrum<T> emitted = chosen < area_count
-                                      ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
-                                      : scene.environment.eval<T>(params, es.wi);
+            Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
+                                                      : scene.environment.eval<T>(params, es.wi);
             float light_pdf = es.pdf * select_pdf;
             float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
             Spectrum<T> contribution = beta * f * emitted * w_over_pdf;

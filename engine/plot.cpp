@@ -13,21 +13,36 @@ namespace {
 // 3×5 glyphs, row-major bits from the top-left (bit 14 = top-left pixel).
 int glyph_bits(char c) {
   switch (c) {
-    case '0': return 0b111101101101111;
-    case '1': return 0b010110010010111;
-    case '2': return 0b111001111100111;
-    case '3': return 0b111001111001111;
-    case '4': return 0b101101111001001;
-    case '5': return 0b111100111001111;
-    case '6': return 0b111100111101111;
-    case '7': return 0b111001001001001;
-    case '8': return 0b111101111101111;
-    case '9': return 0b111101111001111;
-    case '.': return 0b000000000000010;
-    case '-': return 0b000000111000000;
-    case '+': return 0b000010111010000;
-    case 'e': return 0b000111101110011;
-    default: return 0;
+    case '0':
+      return 0b111101101101111;
+    case '1':
+      return 0b010110010010111;
+    case '2':
+      return 0b111001111100111;
+    case '3':
+      return 0b111001111001111;
+    case '4':
+      return 0b101101111001001;
+    case '5':
+      return 0b111100111001111;
+    case '6':
+      return 0b111100111101111;
+    case '7':
+      return 0b111001001001001;
+    case '8':
+      return 0b111101111101111;
+    case '9':
+      return 0b111101111001111;
+    case '.':
+      return 0b000000000000010;
+    case '-':
+      return 0b000000111000000;
+    case '+':
+      return 0b000010111010000;
+    case 'e':
+      return 0b000111101110011;
+    default:
+      return 0;
   }
 }
 
@@ -95,7 +110,8 @@ void write_line_plot(const std::string& path, const PlotSeries& s, bool log_y, c
     c.line(px(fx), H - bottom, px(fx), H - bottom + 5, 0, 0, 0);
     c.text(int(px(fx)) - 10, H - bottom + 10, label(fx));
   }
-  for (size_t i = 1; i < s.x.size(); ++i) c.line(px(s.x[i - 1]), py(s.y[i - 1]), px(s.x[i]), py(s.y[i]), 0.1f, 0.3f, 0.8f);
+  for (size_t i = 1; i < s.x.size(); ++i)
+    c.line(px(s.x[i - 1]), py(s.y[i - 1]), px(s.x[i]), py(s.y[i]), 0.1f, 0.3f, 0.8f);
   write_image(path, c.img);
 }
 

@@ -15,7 +15,7 @@ class Progress {
   Progress(std::string label, uint64_t total, std::string unit, bool enabled);
   ~Progress();
   void advance(uint64_t n);
-  void finish();  // prints the final state and a newline
+  void finish();                           // prints the final state and a newline
   void set_note(const std::string& note);  // extra text after the rate (e.g. the current loss)
   double elapsed() const;
 

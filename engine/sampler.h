@@ -22,7 +22,9 @@ class PathSampler {
   PathSampler(uint64_t seed, uint64_t pixel, uint64_t sample_index)
       : key_(mix64(mix64(seed * 0x9e3779b97f4a7c15ull + pixel) ^ (sample_index + 0x632be59bd9b4e019ull))) {}
   // The dimension-th number of this path.
-  float get(uint32_t dimension) const { return bits_to_unit_float(mix64(key_ ^ (uint64_t(dimension) * 0xd1b54a32d192ed03ull))); }
+  float get(uint32_t dimension) const {
+    return bits_to_unit_float(mix64(key_ ^ (uint64_t(dimension) * 0xd1b54a32d192ed03ull)));
+  }
   uint64_t key() const { return key_; }
 
  private:

@@ -84,7 +84,8 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
   Vec3f shading = n;
   if (!m.normals.empty()) shading = normalize(m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2);
   if (!m.uvs.empty())
-    s.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * b1 + m.uvs[i2].x * b2, m.uvs[i0].y * b0 + m.uvs[i1].y * b1 + m.uvs[i2].y * b2};
+    s.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * b1 + m.uvs[i2].x * b2,
+            m.uvs[i0].y * b0 + m.uvs[i1].y * b1 + m.uvs[i2].y * b2};
   else
     s.uv = {b1, b2};
   Vec3f to = s.point - ref;
@@ -127,9 +128,9 @@ Mesh make_rectangle() {
 Mesh make_cube() {
   Mesh m;
   // Each face: outward normal n, in-plane axes a (u) and b (v up); corners n ± a ± b.
-  const Vec3f faces[6][3] = {{{1, 0, 0}, {0, 0, -1}, {0, 1, 0}},  {{-1, 0, 0}, {0, 0, 1}, {0, 1, 0}},
-                             {{0, 1, 0}, {1, 0, 0}, {0, 0, -1}},  {{0, -1, 0}, {1, 0, 0}, {0, 0, 1}},
-                             {{0, 0, 1}, {1, 0, 0}, {0, 1, 0}},   {{0, 0, -1}, {-1, 0, 0}, {0, 1, 0}}};
+  const Vec3f faces[6][3] = {{{1, 0, 0}, {0, 0, -1}, {0, 1, 0}}, {{-1, 0, 0}, {0, 0, 1}, {0, 1, 0}},
+                             {{0, 1, 0}, {1, 0, 0}, {0, 0, -1}}, {{0, -1, 0}, {1, 0, 0}, {0, 0, 1}},
+                             {{0, 0, 1}, {1, 0, 0}, {0, 1, 0}},  {{0, 0, -1}, {-1, 0, 0}, {0, 1, 0}}};
   for (const auto& f : faces) {
     const Vec3f n = f[0], a = f[1], b = f[2];
     uint32_t base = uint32_t(m.positions.size());
@@ -172,7 +173,8 @@ void finalize_mesh(Mesh& m, const Transform& to_world, bool flip_normals, const 
 void validate_param(const Param& p, const std::string& where) {
   for (size_t i = 0; i < p.value.size(); ++i) {
     float v = p.value[i];
-    if (!std::isfinite(v)) throw InputError(where + ": parameter '" + p.name + "' element " + std::to_string(i) + " is NaN or infinite");
+    if (!std::isfinite(v))
+      throw InputError(where + ": parameter '" + p.name + "' element " + std::to_string(i) + " is NaN or infinite");
     if (v < p.lower || v > p.upper) {
       std::ostringstream s;
       s << where << ": parameter '" << p.name << "' element " << i << " = " << v << " is outside its valid range ["
@@ -225,7 +227,8 @@ void apply_override(Scene& scene, const std::string& assignment) {
     int c = p.channels();
     values.resize(p.size());
     for (size_t i = 0; i < img.pixel_count(); ++i)
-      for (int k = 0; k < c; ++k) values[i * size_t(c) + size_t(k)] = img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
+      for (int k = 0; k < c; ++k)
+        values[i * size_t(c) + size_t(k)] = img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
   }
   Param candidate = p;
   candidate.value = values;

@@ -46,15 +46,21 @@ Transform node_local(const tinygltf::Node& node) {
       for (int c = 0; c < 4; ++c) t.m[r][c] = float(node.matrix[size_t(c * 4 + r)]);
     return t;
   }
-  if (node.scale.size() == 3)
-    t = Transform::scale({float(node.scale[0]), float(node.scale[1]), float(node.scale[2])});
+  if (node.scale.size() == 3) t = Transform::scale({float(node.scale[0]), float(node.scale[1]), float(node.scale[2])});
   if (node.rotation.size() == 4) {
     // Unit quaternion (x, y, z, w) → rotation matrix.
-    float x = float(node.rotation[0]), y = float(node.rotation[1]), z = float(node.rotation[2]), w = float(node.rotation[3]);
+    float x = float(node.rotation[0]), y = float(node.rotation[1]), z = float(node.rotation[2]),
+          w = float(node.rotation[3]);
     Transform r;
-    r.m[0][0] = 1 - 2 * (y * y + z * z); r.m[0][1] = 2 * (x * y - z * w);     r.m[0][2] = 2 * (x * z + y * w);
-    r.m[1][0] = 2 * (x * y + z * w);     r.m[1][1] = 1 - 2 * (x * x + z * z); r.m[1][2] = 2 * (y * z - x * w);
-    r.m[2][0] = 2 * (x * z - y * w);     r.m[2][1] = 2 * (y * z + x * w);     r.m[2][2] = 1 - 2 * (x * x + y * y);
+    r.m[0][0] = 1 - 2 * (y * y + z * z);
+    r.m[0][1] = 2 * (x * y - z * w);
+    r.m[0][2] = 2 * (x * z + y * w);
+    r.m[1][0] = 2 * (x * y + z * w);
+    r.m[1][1] = 1 - 2 * (x * x + z * z);
+    r.m[1][2] = 2 * (y * z - x * w);
+    r.m[2][0] = 2 * (x * z - y * w);
+    r.m[2][1] = 2 * (y * z + x * w);
+    r.m[2][2] = 1 - 2 * (x * x + y * y);
     t = r * t;
   }
   if (node.translation.size() == 3)
@@ -66,11 +72,14 @@ Transform node_local(const tinygltf::Node& node) {
 std::vector<float> read_floats(const tinygltf::Model& model, int index, int components, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
   const auto& acc = model.accessors[size_t(index)];
-  if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT || tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
+  if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT ||
+      tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
     throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
-  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size()) throw file_error(path, "accessor without buffer view");
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
+    throw file_error(path, "accessor without buffer view");
   const auto& view = model.bufferViews[size_t(acc.bufferView)];
-  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size()) throw file_error(path, "buffer view references a missing buffer");
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
+    throw file_error(path, "buffer view references a missing buffer");
   const auto& buf = model.buffers[size_t(view.buffer)];
   size_t stride = view.byteStride ? view.byteStride : size_t(components) * 4;
   size_t start = view.byteOffset + acc.byteOffset;
@@ -87,9 +96,11 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
 std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
   const auto& acc = model.accessors[size_t(index)];
-  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size()) throw file_error(path, "index accessor without buffer view");
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
+    throw file_error(path, "index accessor without buffer view");
   const auto& view = model.bufferViews[size_t(acc.bufferView)];
-  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size()) throw file_error(path, "buffer view references a missing buffer");
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
+    throw file_error(path, "buffer view references a missing buffer");
   const auto& buf = model.buffers[size_t(view.buffer)];
   size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
                 : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
@@ -103,7 +114,9 @@ std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, cons
   std::vector<uint32_t> out(acc.count);
   for (size_t i = 0; i < acc.count; ++i) {
     const unsigned char* p = buf.data.data() + start + i * stride;
-    out[i] = size == 1 ? p[0] : size == 2 ? uint32_t(p[0] | (p[1] << 8)) : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
+    out[i] = size == 1   ? p[0]
+             : size == 2 ? uint32_t(p[0] | (p[1] << 8))
+                         : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
   }
   return out;
 }
@@ -132,10 +145,12 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
         if (pos_it == prim.attributes.end()) throw file_error(path, "primitive without POSITION");
         Primitive p;
         std::vector<float> pos = read_floats(model, pos_it->second, 3, path);
-        for (size_t i = 0; i + 2 < pos.size(); i += 3) p.mesh.positions.push_back(world.point({pos[i], pos[i + 1], pos[i + 2]}));
+        for (size_t i = 0; i + 2 < pos.size(); i += 3)
+          p.mesh.positions.push_back(world.point({pos[i], pos[i + 1], pos[i + 2]}));
         if (auto it = prim.attributes.find("NORMAL"); it != prim.attributes.end()) {
           std::vector<float> nrm = read_floats(model, it->second, 3, path);
-          for (size_t i = 0; i + 2 < nrm.size(); i += 3) p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
+          for (size_t i = 0; i + 2 < nrm.size(); i += 3)
+            p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
         }
         if (auto it = prim.attributes.find("TEXCOORD_0"); it != prim.attributes.end()) {
           std::vector<float> uv = read_floats(model, it->second, 2, path);
@@ -150,14 +165,16 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
             (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()))
           throw file_error(path, "attribute counts disagree in mesh '" + gm.name + "'");
         for (uint32_t i : p.mesh.indices)
-          if (i >= p.mesh.positions.size()) throw file_error(path, "triangle index out of range in mesh '" + gm.name + "'");
+          if (i >= p.mesh.positions.size())
+            throw file_error(path, "triangle index out of range in mesh '" + gm.name + "'");
         // glTF winding is counter-clockwise seen from the front, i.e. (p1−p0)×(p2−p0) is the front
         // normal; a mirroring node transform reverses it.
         const float det = world.m[0][0] * (world.m[1][1] * world.m[2][2] - world.m[1][2] * world.m[2][1]) -
                           world.m[0][1] * (world.m[1][0] * world.m[2][2] - world.m[1][2] * world.m[2][0]) +
                           world.m[0][2] * (world.m[1][0] * world.m[2][1] - world.m[1][1] * world.m[2][0]);
         if (det < 0)
-          for (size_t t = 0; t + 2 < p.mesh.indices.size(); t += 3) std::swap(p.mesh.indices[t + 1], p.mesh.indices[t + 2]);
+          for (size_t t = 0; t + 2 < p.mesh.indices.size(); t += 3)
+            std::swap(p.mesh.indices[t + 1], p.mesh.indices[t + 2]);
         p.material = prim.material;
         p.name = (gm.name.empty() ? "mesh" + std::to_string(node.mesh) : gm.name) +
                  (gm.primitives.size() > 1 ? "_" + std::to_string(pi) : "");
@@ -255,9 +272,11 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     m.name = unique(gm.name.empty() ? "material" + std::to_string(gi < 0 ? 0 : gi) : gm.name);
     m.two_sided = true;  // glTF's doubleSided=false is a culling hint; shading stays two-sided
     const auto& pbr = gm.pbrMetallicRoughness;
-    if (!(pbr.roughnessFactor >= 0 && pbr.roughnessFactor <= 1) || !(pbr.metallicFactor >= 0 && pbr.metallicFactor <= 1))
+    if (!(pbr.roughnessFactor >= 0 && pbr.roughnessFactor <= 1) ||
+        !(pbr.metallicFactor >= 0 && pbr.metallicFactor <= 1))
       throw file_error(path, "material '" + gm.name + "': roughnessFactor and metallicFactor must be in [0, 1]");
-    if (pbr.baseColorFactor.size() < 3) throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
+    if (pbr.baseColorFactor.size() < 3)
+      throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
     std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
     const bool metal = pbr.metallicFactor >= 0.5;
     m.type = metal ? BsdfType::RoughConductor : BsdfType::RoughPlastic;
@@ -277,8 +296,8 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
       for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
         for (int c = 0; c < 3; ++c)
-          v[i * 3 + size_t(c)] =
-              std::min(1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
+          v[i * 3 + size_t(c)] = std::min(
+              1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
       color = add_param(m.name + key, {img.height, img.width, 3}, std::move(v), 0.f, 1.f);
       color.bitmap = true;
       if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
@@ -304,11 +323,12 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     if (p.material >= 0) {
       const auto& gm = model.materials[size_t(p.material)];
       double strength = 1.0;
-      if (auto it = gm.extensions.find("KHR_materials_emissive_strength"); it != gm.extensions.end() &&
-                                                                           it->second.Has("emissiveStrength"))
+      if (auto it = gm.extensions.find("KHR_materials_emissive_strength");
+          it != gm.extensions.end() && it->second.Has("emissiveStrength"))
         strength = it->second.Get("emissiveStrength").GetNumberAsDouble();
       std::vector<float> e;
-      for (size_t c = 0; c < 3 && c < gm.emissiveFactor.size(); ++c) e.push_back(float(gm.emissiveFactor[c] * strength));
+      for (size_t c = 0; c < 3 && c < gm.emissiveFactor.size(); ++c)
+        e.push_back(float(gm.emissiveFactor[c] * strength));
       if (e.size() == 3 && (e[0] > 0 || e[1] > 0 || e[2] > 0)) {
         AreaEmitter em;
         em.mesh = int(scene->meshes.size());
@@ -327,7 +347,8 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     if (gc.type != "perspective") continue;
     if (!(gc.perspective.yfov > 0 && gc.perspective.yfov < M_PI))
       throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π)");
-    if (gc.perspective.aspectRatio < 0) throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
+    if (gc.perspective.aspectRatio < 0)
+      throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
     Camera c;
     c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
     c.fov_axis_x = false;
@@ -345,14 +366,16 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     Vec3f lo(1e30f), hi(-1e30f);
     for (const auto& m : scene->meshes)
       for (size_t i = 0; i < m.vertex_count(); ++i)
-        for (int k = 0; k < 3; ++k) lo[k] = std::min(lo[k], m.positions[i][k]), hi[k] = std::max(hi[k], m.positions[i][k]);
+        for (int k = 0; k < 3; ++k)
+          lo[k] = std::min(lo[k], m.positions[i][k]), hi[k] = std::max(hi[k], m.positions[i][k]);
     Vec3f center = (lo + hi) * 0.5f;
     float radius = 0.5f * length(hi - lo);
     Camera c;
     c.name = "default";
     c.fov_degrees = 40.f;
     c.target = center;
-    c.origin = center + Vec3f(0, 0.3f, 1.f) * (radius / std::tan(20.f * kPi / 180.f) / length(Vec3f(0, 0.3f, 1.f)) * 1.1f);
+    c.origin =
+        center + Vec3f(0, 0.3f, 1.f) * (radius / std::tan(20.f * kPi / 180.f) / length(Vec3f(0, 0.3f, 1.f)) * 1.1f);
     scene->cameras.push_back(c);
   }
   // A default sky: white when nothing emits, dim otherwise so the emitters dominate.

@@ -16,6 +16,31 @@
 namespace bl {
 
 namespace fs = std::filesystem;
+Camera parse_camera(Node& n, const std::string& default_name) {
+  Camera c;
+  c.name = n.string("name", default_name);
+  c.origin = n.vec3("origin");
+  c.target = n.vec3("target");
+  c.up = n.vec3("up", {0, 1, 0});
+  c.fov_degrees = float(n.number_required("fov", 1e-3, 179.9));
+  std::string axis = n.string("fov_axis", "x");
+  if (axis != "x" && axis != "y") n.fail_at("fov_axis", "expected \"x\" or \"y\"");
+  c.fov_axis_x = axis == "x";
+  if (const json* r = n.find("resolution")) {
+    if (!r->is_array() || r->size() != 2 || !(*r)[0].is_number_integer() || !(*r)[1].is_number_integer() ||
+        (*r)[0].get<int>() < 1 || (*r)[1].get<int>() < 1 || (*r)[0].get<int>() > 16384 || (*r)[1].get<int>() > 16384)
+      n.fail_at("resolution", "expected [width, height] with positive integers ≤ 16384");
+    c.width = (*r)[0].get<int>();
+    c.height = (*r)[1].get<int>();
+  }
+  c.near_clip = float(n.number("near_clip", 1e-3, 0, 1e6));
+  n.finish();
+  if (length(c.target - c.origin) <= 0) n.fail("origin and target coincide");
+  if (length(cross(normalize(c.target - c.origin), c.up)) < 1e-6f) n.fail("up is parallel to the view direction");
+  c.update();
+  return c;
+}
+
 namespace {
 
 struct Loader {
@@ -66,7 +91,8 @@ struct Loader {
       p.value.resize(size_t(img.width) * size_t(img.height) * size_t(c));
       for (size_t i = 0; i < img.pixel_count(); ++i)
         for (int k = 0; k < c; ++k)
-          p.value[i * size_t(c) + size_t(k)] = img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
+          p.value[i * size_t(c) + size_t(k)] =
+              img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
       slot.bitmap = true;
       slot.wrap = wrap == "clamp" ? Wrap::Clamp : Wrap::Repeat;
     } else {
@@ -88,29 +114,7 @@ struct Loader {
     n.finish();
   }
 
-  void camera(Node n) {
-    Camera c;
-    c.name = n.string("name", "camera" + std::to_string(scene.cameras.size()));
-    c.origin = n.vec3("origin");
-    c.target = n.vec3("target");
-    c.up = n.vec3("up", {0, 1, 0});
-    c.fov_degrees = float(n.number_required("fov", 1e-3, 179.9));
-    std::string axis = n.string("fov_axis", "x");
-    if (axis != "x" && axis != "y") n.fail_at("fov_axis", "expected \"x\" or \"y\"");
-    c.fov_axis_x = axis == "x";
-    if (const json* r = n.find("resolution")) {
-      if (!r->is_array() || r->size() != 2 || !(*r)[0].is_number_integer() || !(*r)[1].is_number_integer() ||
-          (*r)[0].get<int>() < 1 || (*r)[1].get<int>() < 1 || (*r)[0].get<int>() > 16384 || (*r)[1].get<int>() > 16384)
-        n.fail_at("resolution", "expected [width, height] with positive integers ≤ 16384");
-      c.width = (*r)[0].get<int>();
-      c.height = (*r)[1].get<int>();
-    }
-    c.near_clip = float(n.number("near_clip", 1e-3, 0, 1e6));
-    n.finish();
-    if (length(c.target - c.origin) <= 0) n.fail("origin and target coincide");
-    if (length(cross(normalize(c.target - c.origin), c.up)) < 1e-6f) n.fail("up is parallel to the view direction");
-    scene.cameras.push_back(c);
-  }
+  void camera(Node n) { scene.cameras.push_back(parse_camera(n, "camera" + std::to_string(scene.cameras.size()))); }
 
   void material(const std::string& name, Node n) {
     if (name.find('.') != std::string::npos) n.fail("material names must not contain '.'");
@@ -201,7 +205,8 @@ struct Loader {
     if (const json* uv = n.find("uvs")) {
       if (!uv->is_array() || uv->size() != m.positions.size()) n.fail_at("uvs", "needs one [u, v] per position");
       for (const auto& e : *uv) {
-        if (!e.is_array() || e.size() != 2 || !e[0].is_number() || !e[1].is_number()) n.fail_at("uvs", "expected [u, v]");
+        if (!e.is_array() || e.size() != 2 || !e[0].is_number() || !e[1].is_number())
+          n.fail_at("uvs", "expected [u, v]");
         Vec2f uv{e[0].get<float>(), e[1].get<float>()};
         if (!std::isfinite(uv.x) || !std::isfinite(uv.y)) n.fail_at("uvs", "not a finite number");
         m.uvs.push_back(uv);
@@ -212,7 +217,8 @@ struct Loader {
 
   void shape(Node n, std::set<std::string>& names) {
     std::string name = n.string("name");
-    if (name.empty() || name.find('.') != std::string::npos) n.fail_at("name", "shape names must be non-empty and contain no '.'");
+    if (name.empty() || name.find('.') != std::string::npos)
+      n.fail_at("name", "shape names must be non-empty and contain no '.'");
     if (!names.insert(name).second) n.fail_at("name", "duplicate shape name '" + name + "'");
     std::string type = n.string("type");
     Transform to_world;
@@ -271,7 +277,8 @@ struct Loader {
     env.present = true;
     if (type == "constant") {
       env.is_map = false;
-      env.param = texturable(n.at("radiance"), n.pointer("radiance"), "environment", "radiance", false, 0.f, 1e30f).param;
+      env.param =
+          texturable(n.at("radiance"), n.pointer("radiance"), "environment", "radiance", false, 0.f, 1e30f).param;
     } else if (type == "envmap") {
       env.is_map = true;
       env.scale = float(n.number("scale", 1.0, 0.0, 1e30));
@@ -292,7 +299,8 @@ struct Loader {
     for (size_t i = 0; i < cams.size(); ++i) camera(Node(cams[i], "/cameras/" + std::to_string(i), file));
     const json& mats = n.at("materials");
     if (!mats.is_object()) n.fail_at("materials", "expected an object name → material");
-    for (auto it = mats.begin(); it != mats.end(); ++it) material(it.key(), Node(it.value(), "/materials/" + it.key(), file));
+    for (auto it = mats.begin(); it != mats.end(); ++it)
+      material(it.key(), Node(it.value(), "/materials/" + it.key(), file));
     const json& shapes = n.at("shapes");
     if (!shapes.is_array() || shapes.empty()) n.fail_at("shapes", "expected a non-empty list of shapes");
     std::set<std::string> names;

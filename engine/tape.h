@@ -80,24 +80,46 @@ inline Var operator/(const Var& a, const Var& b) {
 inline Var operator-(const Var& a) { return record(-a.v, a, -1.f); }
 // Mixed with plain numbers: one operand, one entry (or none).
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator+(const Var& a, U b) { return record(a.v + float(b), a, 1.f); }
+Var operator+(const Var& a, U b) {
+  return record(a.v + float(b), a, 1.f);
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator+(U a, const Var& b) { return record(float(a) + b.v, b, 1.f); }
+Var operator+(U a, const Var& b) {
+  return record(float(a) + b.v, b, 1.f);
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator-(const Var& a, U b) { return record(a.v - float(b), a, 1.f); }
+Var operator-(const Var& a, U b) {
+  return record(a.v - float(b), a, 1.f);
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator-(U a, const Var& b) { return record(float(a) - b.v, b, -1.f); }
+Var operator-(U a, const Var& b) {
+  return record(float(a) - b.v, b, -1.f);
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator*(const Var& a, U b) { return record(a.v * float(b), a, float(b)); }
+Var operator*(const Var& a, U b) {
+  return record(a.v * float(b), a, float(b));
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator*(U a, const Var& b) { return record(float(a) * b.v, b, float(a)); }
+Var operator*(U a, const Var& b) {
+  return record(float(a) * b.v, b, float(a));
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator/(const Var& a, U b) { return record(a.v / float(b), a, 1.f / float(b)); }
+Var operator/(const Var& a, U b) {
+  return record(a.v / float(b), a, 1.f / float(b));
+}
 template <class U, std::enable_if_t<std::is_arithmetic_v<U>, int> = 0>
-Var operator/(U a, const Var& b) { return record(float(a) / b.v, b, -float(a) / (b.v * b.v)); }
+Var operator/(U a, const Var& b) {
+  return record(float(a) / b.v, b, -float(a) / (b.v * b.v));
+}
 
-template <class B> bool operator<(const Var& a, const B& b) { return a.v < value_of(b); }
-template <class B> bool operator>(const Var& a, const B& b) { return a.v > value_of(b); }
+template <class B>
+bool operator<(const Var& a, const B& b) {
+  return a.v < value_of(b);
+}
+template <class B>
+bool operator>(const Var& a, const B& b) {
+  return a.v > value_of(b);
+}
 
 inline Var sqrt(const Var& a) {
   float r = std::sqrt(a.v);

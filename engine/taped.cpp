@@ -24,14 +24,14 @@ size_t parse_memory_size(const std::string& text) {
   double v = std::strtod(text.c_str(), &end);
   std::string unit = end ? std::string(end) : "";
   for (auto& c : unit) c = char(std::toupper(c));
-  double scale = unit.empty() || unit == "B" ? 1.0
+  double scale = unit.empty() || unit == "B"   ? 1.0
                  : unit == "K" || unit == "KB" ? 1e3
-                 : unit == "KIB" ? 1024.0
+                 : unit == "KIB"               ? 1024.0
                  : unit == "M" || unit == "MB" ? 1e6
-                 : unit == "MIB" ? 1048576.0
+                 : unit == "MIB"               ? 1048576.0
                  : unit == "G" || unit == "GB" ? 1e9
-                 : unit == "GIB" ? 1073741824.0
-                 : -1;
+                 : unit == "GIB"               ? 1073741824.0
+                                               : -1;
   if (end == text.c_str() || scale < 0 || !(v > 0) || !std::isfinite(v))
     throw InputError("--memory-budget '" + text + "': expected a size such as 512MB or 4GB");
   return size_t(v * scale);
@@ -118,7 +118,8 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   if (rq.adjoint_image) {
     adjoint = *rq.adjoint_image;
     result.loss = 0;
-    for (size_t i = 0; i < adjoint.data.size(); ++i) result.loss += double(adjoint.data[i]) * double(result.image.data[i]);
+    for (size_t i = 0; i < adjoint.data.size(); ++i)
+      result.loss += double(adjoint.data[i]) * double(result.image.data[i]);
   } else {
     LossResult lr = compute_loss(rq.loss, result.image, *rq.target);
     result.loss = lr.value;

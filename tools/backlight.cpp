@@ -1,8 +1,8 @@
 // backlight — command-line front end: render, params, grad, check, optimize.
 // Every user error (bad file, bad flag, bad value) prints one line "backlight: <problem>" and
 // exits with code 2; internal failures exit with 1.
-#include <CLI/CLI.hpp>
 #include <tbb/global_control.h>
+#include <CLI/CLI.hpp>
 
 #include <cstdio>
 #include <filesystem>
@@ -14,13 +14,13 @@
 
 #include "engine/errors.h"
 #include "engine/gradient.h"
-#include "engine/taped.h"
 #include "engine/image_io.h"
 #include "engine/loss.h"
 #include "engine/optimizer.h"
 #include "engine/progress.h"
 #include "engine/render.h"
 #include "engine/scene_load.h"
+#include "engine/taped.h"
 
 using namespace bl;
 namespace fs = std::filesystem;
@@ -102,7 +102,8 @@ Image read_target(const std::string& path, const Camera& cam, const char* what) 
   Image t = read_image(path, true);
   if (t.width != cam.width || t.height != cam.height)
     throw file_error(path, std::string(what) + " is " + std::to_string(t.width) + "x" + std::to_string(t.height) +
-                               " but the camera renders " + std::to_string(cam.width) + "x" + std::to_string(cam.height));
+                               " but the camera renders " + std::to_string(cam.width) + "x" +
+                               std::to_string(cam.height));
   if (t.channels < 3) {
     Image rgb(t.width, t.height, 3);
     for (size_t i = 0; i < t.pixel_count(); ++i)
@@ -135,12 +136,12 @@ int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
     std::cout << arr.dump(1) << "\n";
   } else {
     for (size_t i = 0; i < params.count(); ++i)
-      std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(), params[int(i)].size());
+      std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(),
+                  params[int(i)].size());
   }
   if (!dump.empty()) dump_parameter_values(params, dump);
   return 0;
 }
-
 
 struct GradFlags {
   std::string target, adjoint_image, out, method = "prb", loss = "l2", memory_budget;
@@ -155,7 +156,8 @@ struct GradFlags {
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
     app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)");
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
-    app->add_option("--memory-budget", memory_budget, "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
+    app->add_option("--memory-budget", memory_budget,
+                    "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
   }
 };
 
@@ -169,7 +171,8 @@ struct CheckFlags {
     app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
     app->add_option("--param", param, "Parameter to check")->required();
     app->add_option("--directions", directions, "Number of random directions (default 4)");
-    app->add_option("--eps", eps, "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (default 1e-2)");
+    app->add_option("--eps", eps,
+                    "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (default 1e-2)");
     app->add_option("--tolerance", tolerance, "Largest accepted relative error; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
@@ -177,9 +180,9 @@ struct CheckFlags {
   }
 };
 
-GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std::string& method, const std::string& loss,
-                             const std::string& target, const std::string& adjoint_image, Image& target_img,
-                             Image& adjoint_img) {
+GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std::string& method,
+                             const std::string& loss, const std::string& target, const std::string& adjoint_image,
+                             Image& target_img, Image& adjoint_img) {
   GradientRequest rq;
   rq.method = parse_method(method);
   rq.loss = parse_loss(loss);
@@ -245,8 +248,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   return ok ? 0 : 1;
 }
 
-namespace {
-}  // namespace
+namespace {}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"backlight: a differentiable path tracer with radiative backpropagation"};
@@ -264,7 +266,8 @@ int main(int argc, char** argv) {
   auto* params_cmd = app.add_subcommand("params", "List the scene's differentiable parameters");
   params_flags.add_to(params_cmd);
   params_cmd->add_flag("--json", as_json, "Print a JSON array of {name, shape, size}");
-  params_cmd->add_option("--dump", dump, "Write every value: image-shaped ones as DIR/<name>.exr, the rest in DIR/params.json");
+  params_cmd->add_option("--dump", dump,
+                         "Write every value: image-shaped ones as DIR/<name>.exr, the rest in DIR/params.json");
 
   GradFlags gf;
   auto* grad_cmd = app.add_subcommand(
@@ -284,7 +287,8 @@ int main(int argc, char** argv) {
   std::string config, resume;
   int opt_threads = 0;
   bool opt_quiet = false;
-  auto* optimize_cmd = app.add_subcommand("optimize", "Gradient-descent optimization described by a JSON config (see README)");
+  auto* optimize_cmd =
+      app.add_subcommand("optimize", "Gradient-descent optimization described by a JSON config (see README)");
   optimize_cmd->add_option("config", config, "Optimization config")->required();
   optimize_cmd->add_option("--resume", resume, "Continue from the last checkpoint in this output directory");
   optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default: all cores)");

@@ -26,31 +26,38 @@ struct BsdfValue {
 
   Spectrum<T> eval(const Vec3f& wo, const Vec3f& wi) const {
     switch (type) {
-      case BsdfType::Diffuse: return diffuse_eval(DiffuseParams<T>{albedo}, wo, wi);
-      case BsdfType::RoughConductor: return roughconductor_eval(RoughConductorParams<T>{specular, roughness}, wo, wi);
-      case BsdfType::RoughPlastic: return roughplastic_eval(RoughPlasticParams<T>{albedo, roughness, ior}, wo, wi);
+      case BsdfType::Diffuse:
+        return diffuse_eval(DiffuseParams<T>{albedo}, wo, wi);
+      case BsdfType::RoughConductor:
+        return roughconductor_eval(RoughConductorParams<T>{specular, roughness}, wo, wi);
+      case BsdfType::RoughPlastic:
+        return roughplastic_eval(RoughPlasticParams<T>{albedo, roughness, ior}, wo, wi);
     }
     return Spectrum<T>(T(0.f));
   }
   // Sampling and pdfs are detached: they read plain float values.
-  BsdfValue<float> detached() const {
-    return {type, value_of(albedo), value_of(specular), value_of(roughness), ior};
-  }
+  BsdfValue<float> detached() const { return {type, value_of(albedo), value_of(specular), value_of(roughness), ior}; }
   BsdfSample sample(const Vec3f& wo, float u_lobe, Vec2f u) const {
     static_assert(std::is_same_v<T, float>, "sample a detached BsdfValue");
     switch (type) {
-      case BsdfType::Diffuse: return diffuse_sample({albedo}, wo, u_lobe, u);
-      case BsdfType::RoughConductor: return roughconductor_sample({specular, roughness}, wo, u_lobe, u);
-      case BsdfType::RoughPlastic: return roughplastic_sample({albedo, roughness, ior}, wo, u_lobe, u);
+      case BsdfType::Diffuse:
+        return diffuse_sample({albedo}, wo, u_lobe, u);
+      case BsdfType::RoughConductor:
+        return roughconductor_sample({specular, roughness}, wo, u_lobe, u);
+      case BsdfType::RoughPlastic:
+        return roughplastic_sample({albedo, roughness, ior}, wo, u_lobe, u);
     }
     return {};
   }
   float pdf(const Vec3f& wo, const Vec3f& wi) const {
     static_assert(std::is_same_v<T, float>, "take pdfs of a detached BsdfValue");
     switch (type) {
-      case BsdfType::Diffuse: return diffuse_pdf({albedo}, wo, wi);
-      case BsdfType::RoughConductor: return roughconductor_pdf({specular, roughness}, wo, wi);
-      case BsdfType::RoughPlastic: return roughplastic_pdf({albedo, roughness, ior}, wo, wi);
+      case BsdfType::Diffuse:
+        return diffuse_pdf({albedo}, wo, wi);
+      case BsdfType::RoughConductor:
+        return roughconductor_pdf({specular, roughness}, wo, wi);
+      case BsdfType::RoughPlastic:
+        return roughplastic_pdf({albedo, roughness, ior}, wo, wi);
     }
     return 0.f;
   }
@@ -106,7 +113,9 @@ struct Material {
   BsdfGradient bsdf_backprop(const BsdfValue<float>& v, const Vec3f& wo, const Vec3f& wi, const Vec3f& adjoint) const {
     BsdfGradient g;
     switch (type) {
-      case BsdfType::Diffuse: g.albedo = diffuse_backprop({v.albedo}, wo, wi, adjoint).albedo; break;
+      case BsdfType::Diffuse:
+        g.albedo = diffuse_backprop({v.albedo}, wo, wi, adjoint).albedo;
+        break;
       case BsdfType::RoughConductor: {
         auto c = roughconductor_backprop({v.specular, v.roughness}, wo, wi, adjoint);
         g.specular = c.specular, g.roughness = c.roughness;
@@ -138,9 +147,12 @@ struct Material {
   // Whether any parameter this material reads wants a gradient (skips needless shader work).
   bool wants_grad(const GradientAccumulator& grads) const {
     switch (type) {
-      case BsdfType::Diffuse: return grads.wants(albedo.param);
-      case BsdfType::RoughConductor: return grads.wants(specular.param) || grads.wants(roughness.param);
-      case BsdfType::RoughPlastic: return grads.wants(albedo.param) || grads.wants(roughness.param);
+      case BsdfType::Diffuse:
+        return grads.wants(albedo.param);
+      case BsdfType::RoughConductor:
+        return grads.wants(specular.param) || grads.wants(roughness.param);
+      case BsdfType::RoughPlastic:
+        return grads.wants(albedo.param) || grads.wants(roughness.param);
     }
     return false;
   }

@@ -57,7 +57,8 @@ inline RoughPlasticParams<float> roughplastic_backprop(const RoughPlasticParams<
                                                        const Vec3f& wi, const Vec3f& adjoint) {
   using D = Dual<float, 4>;
   RoughPlasticParams<D> pd{{D::variable(p.albedo.x, 0), D::variable(p.albedo.y, 1), D::variable(p.albedo.z, 2)},
-                           D::variable(p.roughness, 3), p.ior};
+                           D::variable(p.roughness, 3),
+                           p.ior};
   Spectrum<D> f = roughplastic_eval(pd, wo, wi);
   float g[4];
   for (int k = 0; k < 4; ++k) g[k] = adjoint.x * f.x.d[k] + adjoint.y * f.y.d[k] + adjoint.z * f.z.d[k];

@@ -57,7 +57,8 @@ Spectrum<T> bitmap_eval(const Param& p, Wrap wrap, Vec2f uv) {
       const size_t base = (size_t(f.rows[r]) * size_t(w) + size_t(f.cols[q])) * size_t(c);
       const float weight = f.weights[r][q];
       if (weight == 0.f) continue;
-      for (int k = 0; k < std::min(c, 3); ++k) out[k] = out[k] + ParamLoad<T>::load_weighted(p, base + size_t(k), weight);
+      for (int k = 0; k < std::min(c, 3); ++k)
+        out[k] = out[k] + ParamLoad<T>::load_weighted(p, base + size_t(k), weight);
     }
   if (c == 1) return {out[0], out[0], out[0]};
   return {out[0], out[1], out[2]};

@@ -3,9 +3,9 @@
 // accumulated by several threads: small parameters (≤ kSmallParamLimit floats) in per-thread
 // double sums reduced once, large ones by atomic float adds whose order varies. The tests below
 // pin down what holds (measured, see the comments at each check).
-#include <catch2/catch.hpp>
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
+#include <catch2/catch.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -32,9 +32,7 @@ std::unique_ptr<Scene> cornell(int res) {
   return scene;
 }
 
-std::unique_ptr<Scene> open_scene() {
-  return load_scene(test::write_open_scene(test::temp_dir("determinism")));
-}
+std::unique_ptr<Scene> open_scene() { return load_scene(test::write_open_scene(test::temp_dir("determinism"))); }
 
 bool bitwise_equal(const Image& a, const Image& b) {
   return a.width == b.width && a.height == b.height && a.channels == b.channels &&
@@ -47,7 +45,8 @@ size_t count_differences(const Image& a, const Image& b) {
   return n;
 }
 
-std::vector<std::vector<float>> gradients(Scene& scene, const Image& target, GradientMethod m, int threads, Image* image) {
+std::vector<std::vector<float>> gradients(Scene& scene, const Image& target, GradientMethod m, int threads,
+                                          Image* image) {
   return with_threads(threads, [&] {
     GradientRequest rq;
     rq.method = m;
@@ -149,7 +148,8 @@ TEST_CASE("PathSampler streams regenerate identically on any thread", "[determin
   with_threads(2, [&] {
     tbb::parallel_for(0, kPixels * kSamples, [&](int t) {
       int px = t / kSamples, s = t % kSamples;
-      for (int d = kDims - 1; d >= 0; --d) parallel[index(px, s, d)] = PathSampler(42, uint64_t(px), uint64_t(s)).get(uint32_t(d));
+      for (int d = kDims - 1; d >= 0; --d)
+        parallel[index(px, s, d)] = PathSampler(42, uint64_t(px), uint64_t(s)).get(uint32_t(d));
     });
     return 0;
   });

@@ -28,7 +28,8 @@ constexpr float kEnv = 0.5f;
 std::unique_ptr<Scene> furnace_scene(const std::string& name, const std::string& material, int rr_depth) {
   std::string dir = test::temp_dir("furnace-" + name);
   std::ofstream(dir + "/scene.json") << R"({
-  "integrator": {"spp": 16, "max_depth": -1, "rr_depth": )" + std::to_string(rr_depth) + R"(, "seed": 1},
+  "integrator": {"spp": 16, "max_depth": -1, "rr_depth": )" +
+                                            std::to_string(rr_depth) + R"(, "seed": 1},
   "cameras": [{"origin": [2.2, 1.8, 3.2], "target": [0, 0.2, 0], "fov": 45, "resolution": [32, 32]}],
   "materials": {"m": )" + material + R"(},
   "shapes": [
@@ -46,7 +47,7 @@ std::unique_ptr<Scene> furnace_scene(const std::string& name, const std::string&
 
 struct FurnaceStats {
   double mean[3] = {0, 0, 0};
-  double stderr_[3] = {0, 0, 0};  // of `mean`, from the spread of the batch means
+  double stderr_[3] = {0, 0, 0};   // of `mean`, from the spread of the batch means
   Image pixel_mean, pixel_stderr;  // per pixel, over batches
   double max_z = 0;                // max over pixels/channels of |pixel mean − E| / stderr
   double max_excess_z = 0;         // max of (pixel mean − E) / stderr: brighter than E
@@ -113,8 +114,8 @@ std::string describe(const FurnaceStats& s) {
   std::ostringstream o;
   o << "image mean " << s.mean[0] << " " << s.mean[1] << " " << s.mean[2] << " ± " << s.stderr_[0] << " "
     << s.stderr_[1] << " " << s.stderr_[2] << "; max |pixel − E| " << s.max_abs_dev << ", max |z| " << s.max_z
-    << ", max excess z " << s.max_excess_z << ", fraction |z| > 3: " << s.frac_z_above_3
-    << ", surface pixels " << surface_fraction(s);
+    << ", max excess z " << s.max_excess_z << ", fraction |z| > 3: " << s.frac_z_above_3 << ", surface pixels "
+    << surface_fraction(s);
   return o.str();
 }
 
@@ -126,8 +127,8 @@ TEST_CASE("white furnace: albedo-1 diffuse surfaces reproduce the environment ex
   // with 15 dof; P(|t| > 6) ≈ 2e-5 per value, ~3000 values) or 0.1 absolute from E.
   for (int rr_depth : {2, 0}) {
     INFO("rr_depth " << rr_depth << " (0 = Russian roulette off), max_depth -1 (unlimited)");
-    auto scene = furnace_scene("diffuse" + std::to_string(rr_depth), R"({"type": "diffuse", "albedo": 1, "two_sided": true})",
-                               rr_depth);
+    auto scene = furnace_scene("diffuse" + std::to_string(rr_depth),
+                               R"({"type": "diffuse", "albedo": 1, "two_sided": true})", rr_depth);
     FurnaceStats s = furnace(*scene, 16, 16);
     INFO(describe(s));
     CHECK(surface_fraction(s) > 0.3);  // the objects fill a good part of the frame
@@ -153,10 +154,11 @@ TEST_CASE("furnace: rough plastic and rough conductor of unit albedo never excee
     const char* material;
     double min_mean;
   };
-  for (const Case& k : {Case{"plastic", R"({"type": "roughplastic", "albedo": 1, "roughness": 0.3, "ior": 1.5})", 0.4},
-                        Case{"plastic_smooth", R"({"type": "roughplastic", "albedo": 1, "roughness": 0.05, "ior": 1.5})", 0.4},
-                        Case{"conductor", R"({"type": "roughconductor", "specular": 1, "roughness": 0.3})", 0.38},
-                        Case{"conductor_rough", R"({"type": "roughconductor", "specular": 1, "roughness": 0.9})", 0.28}}) {
+  for (const Case& k :
+       {Case{"plastic", R"({"type": "roughplastic", "albedo": 1, "roughness": 0.3, "ior": 1.5})", 0.4},
+        Case{"plastic_smooth", R"({"type": "roughplastic", "albedo": 1, "roughness": 0.05, "ior": 1.5})", 0.4},
+        Case{"conductor", R"({"type": "roughconductor", "specular": 1, "roughness": 0.3})", 0.38},
+        Case{"conductor_rough", R"({"type": "roughconductor", "specular": 1, "roughness": 0.9})", 0.28}}) {
     INFO(k.name << ": " << k.material);
     auto scene = furnace_scene(k.name, k.material, 3);
     FurnaceStats s = furnace(*scene, 16, 16);

@@ -59,7 +59,8 @@ TEST_CASE("prb matches same-seed central differences for parameters that do not 
   Image target = target_for(*scene);
   // The environment map moves its own importance sampling; the check holds sampling fixed, as
   // the detached-sampling estimator prb differentiates does.
-  for (const char* name : {"floor.albedo", "light.radiance", "environment.radiance", "plastic.albedo", "metal.specular"}) {
+  for (const char* name :
+       {"floor.albedo", "light.radiance", "environment.radiance", "plastic.albedo", "metal.specular"}) {
     INFO("parameter " << name);
     auto rows = directional_check(*scene, name, request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
     for (const auto& r : rows) {
@@ -108,7 +109,8 @@ TEST_CASE("emitter radiance gradient is exact: dF/dL = sum(dI * I) / L", "[gradi
   const Param& L = scene->params[scene->params.find("light.radiance")];
   for (int c = 0; c < 3; ++c) {
     double exact = 0;
-    for (size_t p = 0; p < r.image.pixel_count(); ++p) exact += double(a.data[p * 3 + size_t(c)]) * r.image.data[p * 3 + size_t(c)];
+    for (size_t p = 0; p < r.image.pixel_count(); ++p)
+      exact += double(a.data[p * 3 + size_t(c)]) * r.image.data[p * 3 + size_t(c)];
     exact /= double(L.value[size_t(c)]);
     INFO("channel " << c << ": prb " << L.grad[size_t(c)] << " exact " << exact);
     CHECK(std::abs(L.grad[size_t(c)] - exact) <= 2e-6 * std::abs(exact));
@@ -179,7 +181,9 @@ TEST_CASE("roughness gradients agree with finite differences in expectation", "[
       fd.push_back((F(theta + eps) - F(theta - eps)) / (2 * eps));
       scene->params[h].value[0] = theta;
     }
-    auto mean = [](const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size()); };
+    auto mean = [](const std::vector<double>& v) {
+      return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size());
+    };
     auto se = [&](const std::vector<double>& v) {
       double m = mean(v), s = 0;
       for (double x : v) s += (x - m) * (x - m);
@@ -229,8 +233,8 @@ TEST_CASE("gradient is zero for texels the camera cannot see and has the right s
             right_sign += factor > 1 ? g < 0 : g > 0;
           }
         }
-    INFO("factor " << factor << ": zeros " << zeros << "/144, visible nonzero " << visible_nonzero
-                   << ", right sign " << right_sign << "/" << counted);
+    INFO("factor " << factor << ": zeros " << zeros << "/144, visible nonzero " << visible_nonzero << ", right sign "
+                   << right_sign << "/" << counted);
     CHECK(zeros == 16 * 3 * 3);
     CHECK(visible_nonzero >= 30);
     CHECK(right_sign == counted);

@@ -56,7 +56,8 @@ std::string write_tiny_job(const std::string& dir, int iterations, const std::st
   Image checker(64, 64, 3);
   for (int y = 0; y < 64; ++y)
     for (int x = 0; x < 64; ++x)
-      for (int c = 0; c < 3; ++c) checker.at(x, y, c) = ((x / 16 + y / 16) % 2) ? 0.85f - 0.2f * float(c) : 0.08f + 0.1f * float(c);
+      for (int c = 0; c < 3; ++c)
+        checker.at(x, y, c) = ((x / 16 + y / 16) % 2) ? 0.85f - 0.2f * float(c) : 0.08f + 0.1f * float(c);
   write_image(dir + "/truth.exr", checker);
   Image start(64, 64, 3);
   for (auto& v : start.data) v = 0.5f;
@@ -74,10 +75,12 @@ std::string write_tiny_job(const std::string& dir, int iterations, const std::st
   "scene": "scene.json",
   "output": "out",
   "parameters": {"floor.albedo": {"lr": 0.05, "bounds": [0, 1]}},
-  "views": {"cameras": ["top", "side"], "reference": {"set": {"floor.albedo": "truth.exr"}, "spp": 64}},
+  "views": {"cameras": ["top", "side", {"name": "extra", "origin": [-1.2, 2.2, 1.6], "target": [0, 0, 0], "fov": 50,
+                                         "resolution": [32, 32]}],
+            "reference": {"set": {"floor.albedo": "truth.exr"}, "spp": 64}},
   "spp": 8,
   "iterations": )" + std::to_string(iterations) +
-                                        R"(,
+                                          R"(,
   "checkpoint_every": 2,
   "snapshot_every": 50)" + extra + R"(
 })";
@@ -111,8 +114,9 @@ TEST_CASE("a tiny optimization cuts the loss at least 10x in under 30 s", "[opti
   CHECK(seconds < 30.0);
   CHECK(summary["parameters"]["floor.albedo"]["rmse_final"].get<double>() <
         summary["parameters"]["floor.albedo"]["rmse_initial"].get<double>() / 3);
-  for (const char* f : {"loss.csv", "loss.png", "param_rmse.png", "compare.png", "summary.json", "final/floor.albedo.exr",
-                        "final/floor.albedo.png", "snapshots/floor.albedo_00050.png", "checkpoint/state.json"})
+  for (const char* f :
+       {"loss.csv", "loss.png", "param_rmse.png", "compare.png", "summary.json", "final/floor.albedo.exr",
+        "final/floor.albedo.png", "snapshots/floor.albedo_00050.png", "checkpoint/state.json"})
     CHECK(fs::exists(dir + "/out/" + f));
 }
 
@@ -131,7 +135,8 @@ TEST_CASE("resuming from a checkpoint reaches the same parameters as an uninterr
   int rows = 0;
   while (std::getline(la, line_a) && std::getline(lb, line_b)) {
     // Same iteration and loss; the wall-clock column differs.
-    CHECK(line_a.substr(0, line_a.find(',', line_a.find(',') + 1)) == line_b.substr(0, line_b.find(',', line_b.find(',') + 1)));
+    CHECK(line_a.substr(0, line_a.find(',', line_a.find(',') + 1)) ==
+          line_b.substr(0, line_b.find(',', line_b.find(',') + 1)));
     ++rows;
   }
   CHECK(rows == 7);
@@ -155,15 +160,31 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
   const std::string head = R"({"scene": "scene.json", "output": "o", )";
   expect_error(head + R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"]}})",
                "bad.json: /views: give \"targets\"");
-  expect_error(head + R"("parameters": {"floor.nope": {"lr": 0.1}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-               "unknown parameter");
-  expect_error(head + R"("parameters": {"floor.albedo": {"lr": 0.1, "bounds": [1, 0]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-               "/parameters/floor.albedo/bounds");
+  expect_error(
+      head +
+          R"("parameters": {"floor.nope": {"lr": 0.1}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "unknown parameter");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "bounds": [1, 0]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.albedo/bounds");
   Image small(5, 5, 3);
   write_image(dir + "/small.exr", small);
-  expect_error(head + R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"], "targets": {"top": "small.exr"}}})",
-               "small.exr: target is 5x5");
-  expect_error(head + R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"], "targets": {"top": "small.exr"}}, "typo": 1})",
-               "unknown key 'typo'");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"], "targets": {"top": "small.exr"}}})",
+      "small.exr: target is 5x5");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"], "targets": {"top": "small.exr"}}, "typo": 1})",
+      "unknown key 'typo'");
   expect_error(R"({"scene": "scene.json", )", "bad.json: 1:");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": [{"name": "top", "origin": [0, 1, 1], "target": [0, 0, 0], "fov": 40}], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "camera name 'top' already exists");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": [{"origin": [0, 1, 0], "fov": 40}], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/views/cameras/0: missing required key 'target'");
 }

@@ -43,9 +43,10 @@ inline std::string write_open_scene(const std::string& dir, const OpenSceneOptio
   write_image(dir + "/sky.exr", sky);
   std::string r = std::to_string(o.resolution);
   std::string json = R"({
-  "integrator": {"spp": 4, "max_depth": )" + std::to_string(o.max_depth) + R"(, "rr_depth": )" +
-                     std::to_string(o.rr_depth) + R"(, "seed": 3},
-  "cameras": [{"origin": [0, 1.6, 4], "target": [0, 0, 0], "fov": 50, "resolution": [)" + r + "," + r + R"(]}],
+  "integrator": {"spp": 4, "max_depth": )" +
+                     std::to_string(o.max_depth) + R"(, "rr_depth": )" + std::to_string(o.rr_depth) + R"(, "seed": 3},
+  "cameras": [{"origin": [0, 1.6, 4], "target": [0, 0, 0], "fov": 50, "resolution": [)" +
+                     r + "," + r + R"(]}],
   "materials": {
     "floor": {"type": "diffuse", "albedo": {"type": "bitmap", "file": "floor.exr", "wrap": "repeat"}},
     "plastic": {"type": "roughplastic", "albedo": [0.2, 0.4, 0.7], "roughness": 0.3},
@@ -64,9 +65,10 @@ inline std::string write_open_scene(const std::string& dir, const OpenSceneOptio
      "transform": {"scale": 0.4, "rotate": {"axis": [1, 0, 0], "angle": 90}, "translate": [0, 2.2, 0]}})"
                                    : "") +
                      R"(
-  ])" + (o.environment ? R"(,
+  ])" +
+                     (o.environment ? R"(,
   "environment": {"type": "envmap", "file": "sky.exr", "scale": 1})"
-                       : "") +
+                                    : "") +
                      "\n}\n";
   std::ofstream(dir + "/scene.json") << json;
   return dir + "/scene.json";

@@ -97,14 +97,14 @@ struct BatchStats {
 };
 
 struct Metrics {
-  size_t count = 0;          // elements compared
-  double mean_ref = 0;       // mean reference value
-  double mean_diff = 0;      // mean(ours − ref)
-  double bias_se = 0;        // standard error of mean_diff (elements independent)
-  double bias_z = 0;         // mean_diff / bias_se
-  double rel_bias = 0;       // |mean_diff| / |mean_ref|
+  size_t count = 0;      // elements compared
+  double mean_ref = 0;   // mean reference value
+  double mean_diff = 0;  // mean(ours − ref)
+  double bias_se = 0;    // standard error of mean_diff (elements independent)
+  double bias_z = 0;     // mean_diff / bias_se
+  double rel_bias = 0;   // |mean_diff| / |mean_ref|
   double z_mean = 0, z_std = 0;
-  double z_std_expected = 0;  // E[z²]^½ under H0 from the Welch–Satterthwaite degrees of freedom
+  double z_std_expected = 0;                   // E[z²]^½ under H0 from the Welch–Satterthwaite degrees of freedom
   double mad = 0, mean_se = 0, mad_ratio = 0;  // mean |ours − ref|, mean combined se, their ratio
   double frac_z4 = 0, max_abs_z = 0;
   // Per-sample variance ratio ours / Mitsuba, Σ(N_o·se_o²) / Σ(N_r·se_r²): ≈ 1 when both use the
@@ -189,8 +189,8 @@ Comparison compare(const BatchStats& ours, const std::vector<float>& ref, const 
 void print(const std::string& name, const Comparison& c) {
   std::printf("%s: %zu elements compared, %zu excluded (both se = 0; there max |diff| %.3g, max rel %.3g)\n",
               name.c_str(), c.all.count, c.zero_se, c.zero_se_max_abs, c.zero_se_max_rel);
-  std::printf("  %-3s %11s %11s %10s %8s %9s %7s %7s %7s %7s %8s %7s %7s\n", "ch", "mean_ref", "mean_diff",
-              "bias_se", "bias_z", "rel_bias", "z_mean", "z_std", "z_exp", "mad/se", "|z|>4", "max|z|", "var_o/r");
+  std::printf("  %-3s %11s %11s %10s %8s %9s %7s %7s %7s %7s %8s %7s %7s\n", "ch", "mean_ref", "mean_diff", "bias_se",
+              "bias_z", "rel_bias", "z_mean", "z_std", "z_exp", "mad/se", "|z|>4", "max|z|", "var_o/r");
   const char* names[4] = {"R", "G", "B", "all"};
   for (int k = 0; k < 4; ++k) {
     const Metrics& m = k < 3 ? c.channel[k] : c.all;
@@ -369,8 +369,8 @@ TEST_CASE("mitsuba3 cornell: prb gradient wrt the back-wall texture", "[referenc
                                       : meta["F_textured_depth6"]["per_channel_stderr"][ch].get<double>();
       const double se = std::hypot(s.se(size_t(ch)), ref_e), d = s.mean[size_t(ch)] - ref_v, z = d / se;
       const char* label = which == 0 ? "sum over texels dF/dθ" : "F = sum(a*I)";
-      std::printf("  %-22s %3s %13.6e %13.6e %13.3e %11.3e %8.2f (rel %.4f%%)\n", label, names[ch],
-                  s.mean[size_t(ch)], ref_v, d, se, z, 100 * std::abs(d / ref_v));
+      std::printf("  %-22s %3s %13.6e %13.6e %13.3e %11.3e %8.2f (rel %.4f%%)\n", label, names[ch], s.mean[size_t(ch)],
+                  ref_v, d, se, z, 100 * std::abs(d / ref_v));
       INFO(label << " channel " << names[ch]);
       CHECK(std::abs(z) < kMaxBiasZ);
     }

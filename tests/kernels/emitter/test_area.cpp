@@ -65,8 +65,9 @@ TEST_CASE("area emitters emit only on the side their normal faces", "[emitter][a
   CHECK(e.eval<float>(store, {0.5f, 0.5f}, 0.3f).y == store[e.radiance.param].value[1]);
   // backprop mirrors eval: nothing flows into the radiance from the back side.
   for (float cos_viewer : {0.f, -0.3f}) {
-    const std::vector<double> g = gradient_through_sink(
-        store, e.radiance.param, [&](GradientAccumulator& a) { e.backprop(store, {0.5f, 0.5f}, cos_viewer, Vec3f(1.f), a); });
+    const std::vector<double> g = gradient_through_sink(store, e.radiance.param, [&](GradientAccumulator& a) {
+      e.backprop(store, {0.5f, 0.5f}, cos_viewer, Vec3f(1.f), a);
+    });
     for (double x : g) CHECK(x == 0.0);
   }
 }
