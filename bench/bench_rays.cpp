@@ -32,7 +32,8 @@ int main(int argc, char** argv) {
     if (std::string(argv[i]) == "--shadow-fraction") shadow_fraction = std::atof(argv[i + 1]);
   }
   std::unique_ptr<tbb::global_control> limit;
-  if (threads > 0) limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
+  if (threads > 0)
+    limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
   try {
     auto scene = load_scene(path);
     const Camera& cam = scene->cameras[0];
