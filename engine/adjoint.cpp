@@ -119,13 +119,13 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
           return PathStart{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY))};
         };
         // 1. Primal estimates of this pixel's samples.
-        Vec3f sum(0.f);
+        Vec3d sum(0.0);  // the same summation as render(), so both give the same image
         for (int s = 0; s < o.spp; ++s) {
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           radiance[size_t(s)] = trace_path<float>(scene, start_of(sampler), sampler, none);
-          sum += radiance[size_t(s)];
+          sum += Vec3d(radiance[size_t(s)]);
         }
-        const Vec3f value = sum / float(o.spp);
+        const Vec3f value(sum / double(o.spp));
         if (image_out)
           for (int c = 0; c < 3; ++c) image_out->at(x, y, c) = value[c];
         // 2. δ per sample: the film's transpose (box filter, mean over spp).

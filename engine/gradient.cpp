@@ -1,7 +1,5 @@
 #include "engine/gradient.h"
 
-#include <tbb/combinable.h>
-
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -77,19 +75,17 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
   const Image& t = *rq.target;
   if (rq.adjoint_seed == rq.pass.seed) {
     // Fused: the loss gradient of a pixel is known as soon as the pixel is rendered.
-    tbb::combinable<double> loss_sum([] { return 0.0; });
     PassStats s = backward(
         scene, adj, method,
         [&](size_t p, const Vec3f& value) {
           Vec3f g;
-          loss_sum.local() += loss_pixel(rq.loss, value, pixel_of(t, p), values, &g);
+          loss_pixel(rq.loss, value, pixel_of(t, p), values, &g);
           return g;
         },
         &result.image);
     result.adjoint_seconds = s.seconds;
-    // Sum in pixel order, so the reported loss does not depend on thread scheduling.
+    // The loss value is summed afterwards in pixel order, so it does not depend on scheduling.
     result.loss = compute_loss(rq.loss, result.image, t).value;
-    (void)loss_sum;
   } else {
     PassStats ps;
     result.image = render(scene, rq.pass, &ps);
@@ -168,9 +164,14 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
   write_image((fs::path(dir) / "image.exr").string(), r.image);
   nlohmann::json j;
   j["method"] = method_name(rq.method);
-  if (rq.adjoint_image)
+  if (rq.adjoint_image) {
     j["functional"] = r.loss;
-  else {
+    // Per channel, summed in double: Σ a_c·I_c (e.g. to check an exact emitter gradient).
+    std::vector<double> per_channel(3, 0.0);
+    for (size_t i = 0; i < r.image.data.size(); ++i)
+      per_channel[i % 3] += double(rq.adjoint_image->data[i]) * double(r.image.data[i]);
+    j["functional_per_channel"] = per_channel;
+  } else {
     j["loss"] = r.loss;
     j["loss_type"] = loss_name(rq.loss);
   }

@@ -29,13 +29,13 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
-        Vec3f sum(0.f);
+        Vec3d sum(0.0);  // double: the mean of many samples does not drift with spp
         for (int s = 0; s < o.spp; ++s) {
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           PathStart start{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY))};
-          sum += trace_path<float>(scene, start, sampler, none);
+          sum += Vec3d(trace_path<float>(scene, start, sampler, none));
         }
-        Vec3f mean = sum / float(o.spp);
+        const Vec3f mean(sum / double(o.spp));
         for (int c = 0; c < 3; ++c) image.at(x, y, c) = mean[c];
       }
     rays += Geometry::thread_ray_count() - rays_before;

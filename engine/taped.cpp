@@ -107,8 +107,9 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   });
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
-    throw InputError("taped: the tape would need about " + megabytes(projected_bytes.load()) +
-                     ", more than the memory budget of " + megabytes(double(budget)) +
+    throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
+                     " (from the " + std::to_string(100 * pixels_done.load() / pixels) +
+                     "% of pixels recorded), more than the memory budget of " + megabytes(double(budget)) +
                      " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
   progress.finish();
   result.primal_seconds = progress.elapsed();

@@ -4,9 +4,7 @@
 #include <sstream>
 #include <string>
 
-#include "kernels/bsdf/diffuse.h"
-#include "kernels/bsdf/roughconductor.h"
-#include "kernels/bsdf/roughplastic.h"
+#include "kernels/bsdf/material.h"
 
 namespace bl::test {
 
@@ -18,41 +16,26 @@ struct BsdfUnderTest {
   float roughness = 0.5f;
   float ior = 1.5f;
 
+  // The BSDF as the renderer sees it: a BsdfValue (kernels/bsdf/material.h), whose dispatch
+  // over BSDF types is the one under test.
+  template <class T>
+  BsdfValue<T> value() const {
+    const Spectrum<T> c(T(color.x), T(color.y), T(color.z));
+    BsdfValue<T> v;
+    v.type = kind == BsdfKind::Diffuse          ? BsdfType::Diffuse
+             : kind == BsdfKind::RoughConductor ? BsdfType::RoughConductor
+                                                : BsdfType::RoughPlastic;
+    (kind == BsdfKind::RoughConductor ? v.specular : v.albedo) = c;
+    v.roughness = T(roughness);
+    v.ior = ior;
+    return v;
+  }
   template <class T>
   Spectrum<T> eval(const Vec3f& wo, const Vec3f& wi) const {
-    const Spectrum<T> c(T(color.x), T(color.y), T(color.z));
-    switch (kind) {
-      case BsdfKind::Diffuse:
-        return diffuse_eval(DiffuseParams<T>{c}, wo, wi);
-      case BsdfKind::RoughConductor:
-        return roughconductor_eval(RoughConductorParams<T>{c, T(roughness)}, wo, wi);
-      case BsdfKind::RoughPlastic:
-        return roughplastic_eval(RoughPlasticParams<T>{c, T(roughness), ior}, wo, wi);
-    }
-    return Spectrum<T>(T(0.f));
+    return value<T>().eval(wo, wi);
   }
-  BsdfSample sample(const Vec3f& wo, float u_lobe, Vec2f u) const {
-    switch (kind) {
-      case BsdfKind::Diffuse:
-        return diffuse_sample({color}, wo, u_lobe, u);
-      case BsdfKind::RoughConductor:
-        return roughconductor_sample({color, roughness}, wo, u_lobe, u);
-      case BsdfKind::RoughPlastic:
-        return roughplastic_sample({color, roughness, ior}, wo, u_lobe, u);
-    }
-    return {};
-  }
-  float pdf(const Vec3f& wo, const Vec3f& wi) const {
-    switch (kind) {
-      case BsdfKind::Diffuse:
-        return diffuse_pdf({color}, wo, wi);
-      case BsdfKind::RoughConductor:
-        return roughconductor_pdf({color, roughness}, wo, wi);
-      case BsdfKind::RoughPlastic:
-        return roughplastic_pdf({color, roughness, ior}, wo, wi);
-    }
-    return 0.f;
-  }
+  BsdfSample sample(const Vec3f& wo, float u_lobe, Vec2f u) const { return value<float>().sample(wo, u_lobe, u); }
+  float pdf(const Vec3f& wo, const Vec3f& wi) const { return value<float>().pdf(wo, wi); }
 
   std::string name() const {
     switch (kind) {
