@@ -68,6 +68,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   std::atomic<uint64_t> entries{0}, pixels_done{0};
   std::atomic<bool> over_budget{false};
   std::atomic<double> projected_bytes{0};
+  std::atomic<uint64_t> trigger_pixels{0};
 
   // 1. Record the whole render.
   Progress progress("taped record", uint64_t(pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
@@ -99,16 +100,19 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
     uint64_t total = entries += tape.size() - before;
     uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
     double projected = double(total) * double(kBytesPerEntry) * double(pixels) / double(done);
-    projected_bytes.store(projected);
-    if ((done * 20 >= pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget))
-      over_budget = true;
+    if ((done * 20 >= pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget)) {
+      // Keep the projection that tripped the guard (other tiles may project less meanwhile).
+      bool expected = false;
+      if (over_budget.compare_exchange_strong(expected, true))
+        projected_bytes.store(std::max(projected, double(total * kBytesPerEntry))), trigger_pixels.store(done);
+    }
     progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
     current_tape = nullptr;
   });
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
     throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
-                     " (from the " + std::to_string(100 * pixels_done.load() / pixels) +
+                     " (from the " + std::to_string(100 * trigger_pixels.load() / pixels) +
                      "% of pixels recorded), more than the memory budget of " + megabytes(double(budget)) +
                      " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
   progress.finish();
