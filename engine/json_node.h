@@ -19,6 +19,12 @@ using nlohmann::json;
 // A JSON object being read: remembers which keys were consumed so leftovers can be reported.
 class Node {
  public:
+  // A node with no keys of its own, for reporting errors at `pointer` (it must not refer to a
+  // temporary: Node keeps a reference to its JSON).
+  static Node at_pointer(std::string pointer, const std::string& file) {
+    static const json empty = json::object();
+    return Node(empty, std::move(pointer), file);
+  }
   Node(const json& j, std::string pointer, const std::string& file) : j_(j), ptr_(std::move(pointer)), file_(file) {
     if (!j_.is_object()) fail("expected an object");
   }

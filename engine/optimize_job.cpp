@@ -372,7 +372,7 @@ class Job {
     for (auto& p : c_.params) {
       Param& param = scene_->params[p.handle];
       if (!p.init.is_null()) {
-        Node holder(json::object(), "/parameters/" + p.name, c_.file);
+        Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
         apply_override(*scene_, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
       }
       if (!p.stages.empty()) resize_param(param, p.stages[0].width, p.stages[0].height);
@@ -608,7 +608,7 @@ class Job {
         for (const auto& o : c_.scene_overrides) apply_override(*initial_scene, o);
         Param initial = initial_scene->params[initial_scene->params.find(p.name)];
         if (!p.init.is_null()) {
-          Node holder(json::object(), "/parameters/" + p.name, c_.file);
+          Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
           apply_override(*initial_scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
           initial = initial_scene->params[initial_scene->params.find(p.name)];
         }

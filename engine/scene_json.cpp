@@ -179,7 +179,7 @@ struct Loader {
   std::vector<Vec3f> vec3_list(const json& v, const std::string& where) {
     if (!v.is_array()) throw file_error(file, where + ": expected an array of [x, y, z]");
     std::vector<Vec3f> out;
-    Node dummy(json::object(), where, file);
+    Node dummy = Node::at_pointer(where, file);
     for (size_t i = 0; i < v.size(); ++i) out.push_back(dummy.vec3_of(v[i], where + "/" + std::to_string(i)));
     return out;
   }
