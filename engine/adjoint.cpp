@@ -26,8 +26,9 @@ struct ReplayObserver {
   static constexpr bool kActive = true;
   const Scene& scene;
   GradientAccumulator& grads;
-  Vec3f delta;           // ∂loss/∂(this sample's radiance)
-  Vec3f total_radiance;  // this sample's primal estimate, from the first run of the same path
+  Vec3f delta;                // ∂loss/∂(this sample's radiance)
+  Vec3f total_radiance;       // this sample's primal estimate, from the first run of the same path
+  VisibilityBits visibility;  // that run's shadow-ray answers
 
   // BSDF gradients of one vertex (from NEE and from the BSDF sample) are summed and pushed into
   // the textures once, when the path moves on: half the texel scatters of doing it per event.
@@ -53,6 +54,9 @@ struct ReplayObserver {
   void emission(const EmissionRef& e, const Vec3f& weight, const Vec3f&) {
     emitter_backprop(scene, e, delta * weight, grads);
   }
+  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  }
   void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
            const Vec3f& emitter_weight, const Vec3f&) {
     if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
@@ -77,7 +81,8 @@ struct RadiativeObserver {
   GradientAccumulator& grads;
   Vec3f delta;
   uint64_t seed, pixel, sample;
-  ReplayObserver local{scene, grads, delta, Vec3f(0.f)};
+  VisibilityBits visibility;
+  ReplayObserver local{scene, grads, delta, Vec3f(0.f), visibility};
 
   void emission(const EmissionRef& e, const Vec3f& w, const Vec3f& c) { local.emission(e, w, c); }
   void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bw, const Vec3f& ew,
@@ -93,6 +98,9 @@ struct RadiativeObserver {
     local.add_bsdf_adjoint(v, wi, delta * beta_before * incident / (pdf * q));
   }
   void flush() { local.flush(); }
+  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  }
 };
 
 }  // namespace
@@ -102,16 +110,21 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   const Camera& cam = scene.cameras.at(size_t(o.camera));
   if (image_out) *image_out = Image(cam.width, cam.height, 3);
   GradientSink sink(scene.params);
-  // Per-thread scratch for one pixel's sample radiances (reused; never allocated per sample).
-  tbb::enumerable_thread_specific<std::vector<Vec3f>> scratch([&] { return std::vector<Vec3f>(size_t(o.spp)); });
+  // Per-thread scratch for one pixel's samples: radiance and shadow-ray answers of each (reused
+  // from pixel to pixel; nothing is allocated per sample or per vertex).
+  struct SampleRecord {
+    Vec3f radiance;
+    VisibilityBits visibility;
+  };
+  tbb::enumerable_thread_specific<std::vector<SampleRecord>> scratch(
+      [&] { return std::vector<SampleRecord>(size_t(o.spp)); });
   Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
                     uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
   std::atomic<uint64_t> rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     const uint64_t rays_before = Geometry::thread_ray_count();
     GradientAccumulator& grads = sink.local();
-    std::vector<Vec3f>& radiance = scratch.local();
-    NoObserver none;
+    std::vector<SampleRecord>& records = scratch.local();
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
@@ -122,8 +135,10 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
         Vec3d sum(0.0);  // the same summation as render(), so both give the same image
         for (int s = 0; s < o.spp; ++s) {
           PathSampler sampler(o.seed, pixel, uint64_t(s));
-          radiance[size_t(s)] = trace_path<float>(scene, start_of(sampler), sampler, none);
-          sum += Vec3d(radiance[size_t(s)]);
+          VisibilityRecorder recorder;
+          records[size_t(s)].radiance = trace_path<float>(scene, start_of(sampler), sampler, recorder);
+          records[size_t(s)].visibility = recorder.bits;
+          sum += Vec3d(records[size_t(s)].radiance);
         }
         const Vec3f value(sum / double(o.spp));
         if (image_out)
@@ -135,11 +150,11 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
         for (int s = 0; s < o.spp; ++s) {
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           if (method == AdjointMethod::Prb) {
-            ReplayObserver replay{scene, grads, delta, radiance[size_t(s)]};
+            ReplayObserver replay{scene, grads, delta, records[size_t(s)].radiance, records[size_t(s)].visibility};
             trace_path<float>(scene, start_of(sampler), sampler, replay);
             replay.flush();
           } else {
-            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s)};
+            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s), records[size_t(s)].visibility};
             trace_path<float>(scene, start_of(sampler), sampler, rb);
             rb.flush();
           }

@@ -43,7 +43,39 @@ struct NoObserver {
   void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
   void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
                const Ray&) {}
+  // The shadow-ray query of next-event estimation at surface vertex `vertex`.
+  bool occluded(const Scene& scene, int, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return scene.geometry->occluded(origin, direction, tmax);
+  }
 };
+
+// Shadow-ray answers of one path, one bit per surface vertex. The adjoint pass records them while
+// computing a sample's radiance and hands them to the replay of the same sample: the answers are a
+// function of the same random numbers, so the replay need not cast its shadow rays again.
+struct VisibilityBits {
+  static constexpr int kVertices = 64;  // deeper vertices are queried again
+  uint64_t queried = 0, blocked = 0;
+};
+
+// First run of a path in the adjoint pass: no events, shadow-ray answers recorded.
+struct VisibilityRecorder : NoObserver {
+  VisibilityBits bits;
+  bool occluded(const Scene& scene, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    const bool blocked = scene.geometry->occluded(origin, direction, tmax);
+    if (vertex < VisibilityBits::kVertices) {
+      bits.queried |= uint64_t(1) << vertex;
+      if (blocked) bits.blocked |= uint64_t(1) << vertex;
+    }
+    return blocked;
+  }
+};
+
+// Replay side: answers from the recorded bits when present.
+inline bool replay_occluded(const Scene& scene, const VisibilityBits& bits, int vertex, const Vec3f& origin,
+                            const Vec3f& direction, float tmax) {
+  if (vertex < VisibilityBits::kVertices && (bits.queried >> vertex & 1u)) return (bits.blocked >> vertex & 1u) != 0;
+  return scene.geometry->occluded(origin, direction, tmax);
+}
 
 inline float power_heuristic(float a, float b) {
   float a2 = a * a, b2 = b * b;
@@ -148,7 +180,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           Vec3f origin = offset_origin(sp.p, sp.geometric_normal, es.wi);
           float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
                                                : length(es.point - origin) * (1.f - 1e-3f);
-          if (!scene.geometry->occluded(origin, es.wi, tmax)) {
+          if (!observer.occluded(scene, vertex, origin, es.wi, tmax)) {
             EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
             Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                                       : scene.environment.eval<T>(params, es.wi);
