@@ -85,8 +85,6 @@ Image read_image(const std::string& path, bool decode_srgb) {
   return img;
 }
 
-Image read_image_auto(const std::string& path) { return read_image(path, true); }
-
 namespace {
 std::string temp_name(const std::string& path) {
   fs::path p(path);

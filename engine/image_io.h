@@ -27,8 +27,6 @@ struct Image {
 // `decode_srgb`; float files are returned as stored. Errors (missing, corrupt, NaN/inf) throw
 // InputError naming the file.
 Image read_image(const std::string& path, bool decode_srgb);
-// Reads with the usual default: sRGB decoding for integer files, raw for float files.
-Image read_image_auto(const std::string& path);
 // Throws InputError unless the extension is one write_image supports (check before long work).
 void check_output_format(const std::string& path);
 // Writes by extension: .exr as float RGB(A), .png/.jpg as sRGB 8-bit clamped. Atomic.

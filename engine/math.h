@@ -102,12 +102,6 @@ Vec3<T> operator/(const Vec3<T>& a, const S& s) {
   return {a.x / s, a.y / s, a.z / s};
 }
 
-// Mixed products used where a detached float vector meets an active one.
-template <class T>
-Vec3<T> mul(const Vec3<T>& a, const Vec3f& b) {
-  return {a.x * b.x, a.y * b.y, a.z * b.z};
-}
-
 template <class T>
 T dot(const Vec3<T>& a, const Vec3<T>& b) {
   return a.x * b.x + a.y * b.y + a.z * b.z;

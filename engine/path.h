@@ -82,11 +82,6 @@ inline float power_heuristic(float a, float b) {
   return a2 + b2 > 0.f ? a2 / (a2 + b2) : 0.f;
 }
 
-inline Spectrum<float> emitter_adjoint_radiance(const Scene& scene, const EmissionRef& e) {
-  return e.area >= 0 ? scene.area_emitters[size_t(e.area)].eval<float>(scene.params, e.uv, 1.f)
-                     : scene.environment.eval<float>(scene.params, e.direction);
-}
-
 inline void emitter_backprop(const Scene& scene, const EmissionRef& e, const Vec3f& adjoint, GradientAccumulator& g) {
   if (e.area >= 0)
     scene.area_emitters[size_t(e.area)].backprop(scene.params, e.uv, 1.f, adjoint, g);  // front side by construction

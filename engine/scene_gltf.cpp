@@ -68,26 +68,40 @@ Transform node_local(const tinygltf::Node& node) {
   return t;
 }
 
-// Reads accessor `index` as floats (count × components), checking bounds against its buffer.
+// The bytes of accessor `index` whose elements are `element_size` bytes: every index on the way
+// (accessor, buffer view, buffer) and the extent of the last element are checked.
+struct AccessorBytes {
+  const unsigned char* data;
+  size_t stride, count;
+};
+AccessorBytes accessor_bytes(const tinygltf::Model& model, int index, size_t element_size, const std::string& path) {
+  const std::string what = "accessor " + std::to_string(index);
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, what + " is out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
+    throw file_error(path, what + " has no buffer view");
+  const auto& view = model.bufferViews[size_t(acc.bufferView)];
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
+    throw file_error(path, "buffer view references a missing buffer");
+  const auto& buf = model.buffers[size_t(view.buffer)];
+  const size_t stride = view.byteStride ? view.byteStride : element_size;
+  const size_t start = view.byteOffset + acc.byteOffset;
+  if (acc.count > 0 && start + stride * (acc.count - 1) + element_size > buf.data.size())
+    throw file_error(path, what + " reads past the end of its buffer");
+  return {buf.data.data() + start, stride, acc.count};
+}
+
+// Reads accessor `index` as floats (count × components).
 std::vector<float> read_floats(const tinygltf::Model& model, int index, int components, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
   const auto& acc = model.accessors[size_t(index)];
   if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT ||
       tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
     throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
-  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
-    throw file_error(path, "accessor without buffer view");
-  const auto& view = model.bufferViews[size_t(acc.bufferView)];
-  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
-    throw file_error(path, "buffer view references a missing buffer");
-  const auto& buf = model.buffers[size_t(view.buffer)];
-  size_t stride = view.byteStride ? view.byteStride : size_t(components) * 4;
-  size_t start = view.byteOffset + acc.byteOffset;
-  if (acc.count > 0 && start + stride * (acc.count - 1) + size_t(components) * 4 > buf.data.size())
-    throw file_error(path, "accessor " + std::to_string(index) + " reads past the end of its buffer");
-  std::vector<float> out(acc.count * size_t(components));
-  for (size_t i = 0; i < acc.count; ++i)
-    std::memcpy(&out[i * size_t(components)], buf.data.data() + start + i * stride, size_t(components) * 4);
+  const AccessorBytes bytes = accessor_bytes(model, index, size_t(components) * 4, path);
+  std::vector<float> out(bytes.count * size_t(components));
+  for (size_t i = 0; i < bytes.count; ++i)
+    std::memcpy(&out[i * size_t(components)], bytes.data + i * bytes.stride, size_t(components) * 4);
   for (float v : out)
     if (!std::isfinite(v)) throw file_error(path, "accessor " + std::to_string(index) + " holds non-finite values");
   return out;
@@ -96,24 +110,15 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
 std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
   const auto& acc = model.accessors[size_t(index)];
-  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
-    throw file_error(path, "index accessor without buffer view");
-  const auto& view = model.bufferViews[size_t(acc.bufferView)];
-  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
-    throw file_error(path, "buffer view references a missing buffer");
-  const auto& buf = model.buffers[size_t(view.buffer)];
   size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
                 : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
                 : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
                                                                               : 0;
   if (!size) throw file_error(path, "unsupported index type");
-  size_t stride = view.byteStride ? view.byteStride : size;
-  size_t start = view.byteOffset + acc.byteOffset;
-  if (acc.count > 0 && start + stride * (acc.count - 1) + size > buf.data.size())
-    throw file_error(path, "index accessor reads past the end of its buffer");
-  std::vector<uint32_t> out(acc.count);
-  for (size_t i = 0; i < acc.count; ++i) {
-    const unsigned char* p = buf.data.data() + start + i * stride;
+  const AccessorBytes bytes = accessor_bytes(model, index, size, path);
+  std::vector<uint32_t> out(bytes.count);
+  for (size_t i = 0; i < bytes.count; ++i) {
+    const unsigned char* p = bytes.data + i * bytes.stride;
     out[i] = size == 1   ? p[0]
              : size == 2 ? uint32_t(p[0] | (p[1] << 8))
                          : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));

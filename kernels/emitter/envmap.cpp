@@ -47,10 +47,13 @@ Vec3f Environment::uv_to_direction(Vec2f uv) {
   return {st * std::sin(phi), std::cos(theta), -st * std::cos(phi)};
 }
 
-size_t Environment::texel_index(const Vec3f& dir) const {
+std::pair<int, int> Environment::texel_of(const Vec3f& dir) const {
   Vec2f uv = direction_to_uv(dir);
-  int col = std::clamp(int(uv.x * float(width)), 0, width - 1);
-  int row = std::clamp(int(uv.y * float(height)), 0, height - 1);
+  return {std::clamp(int(uv.y * float(height)), 0, height - 1), std::clamp(int(uv.x * float(width)), 0, width - 1)};
+}
+
+size_t Environment::texel_index(const Vec3f& dir) const {
+  auto [row, col] = texel_of(dir);
   return size_t(row) * size_t(width) + size_t(col);
 }
 
@@ -96,9 +99,7 @@ EmitterSample Environment::sample(Vec2f u) const {
 
 float Environment::pdf(const Vec3f& dir) const {
   if (!is_map) return 1.f / (4.f * kPi);
-  Vec2f uv = direction_to_uv(dir);
-  int col = std::clamp(int(uv.x * float(width)), 0, width - 1);
-  int row = std::clamp(int(uv.y * float(height)), 0, height - 1);
+  auto [row, col] = texel_of(dir);
   // sqrt(x² + z²), not sqrt(1 − y²): the latter rounds to 0 within ~3e-4 rad of the poles.
   float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
   if (sin_theta <= 0.f) return 0.f;

@@ -7,6 +7,7 @@
 // zenith. A texel is constant over its (u, v) cell (nearest lookup), so sampling a texel with
 // probability ∝ luminance · sin θ and then uniformly in its cell gives a pdf proportional to the
 // emitted luminance: the sampler is exact, which the chi-square test checks.
+#include <utility>
 #include <vector>
 
 #include "kernels/emitter/emitter.h"
@@ -57,6 +58,7 @@ struct Environment {
   float pdf(const Vec3f& dir) const;
 
   size_t texel_index(const Vec3f& dir) const;
+  std::pair<int, int> texel_of(const Vec3f& dir) const;  // (row, col) of the texel seen along dir
   static Vec2f direction_to_uv(const Vec3f& d);
   static Vec3f uv_to_direction(Vec2f uv);
 };
