@@ -12,8 +12,8 @@
 #include <cstdlib>
 #include <string>
 
-#include "engine/sampler.h"
-#include "engine/scene_load.h"
+#include "engine/core/sampler.h"
+#include "engine/scene/scene_load.h"
 #include "kernels/bsdf/bsdf.h"
 
 using namespace bl;

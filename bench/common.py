@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -38,18 +39,44 @@ def run(cmd, check=True):
     return {"seconds": seconds, "stdout": out, "stderr": err, "returncode": proc.returncode}
 
 
+def _sample_anon(pid, peak, stop):
+    """Peak RssAnon (private anonymous memory: heap, buffers; no shared-library pages) of pid into
+    peak[0] and its VmHWM into peak[1] (kB), sampled every 10 ms until stop is set. (getrusage's
+    ru_maxrss of a child also counts the Python process it was forked from, before exec: wrong for
+    processes smaller than this script.)"""
+    while not stop.is_set():
+        try:
+            with open(f"/proc/{pid}/status") as f:
+                for line in f:
+                    if line.startswith("RssAnon:"):
+                        peak[0] = max(peak[0], int(line.split()[1]))
+                    elif line.startswith("VmHWM:"):
+                        peak[1] = max(peak[1], int(line.split()[1]))
+        except OSError:
+            return
+        stop.wait(0.01)
+
+
 def run_measured(cmd, check=True):
-    """Runs cmd in a fresh process; returns seconds, peak RSS (MB) of that process, outputs."""
+    """Runs cmd in a fresh process; returns seconds, peak RSS (MB) of that process (getrusage), its
+    peak private anonymous memory (MB, /proc RssAnon sampled every 10 ms), outputs."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         start = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=out, stderr=err)
+        peak, stop = [0, 0], threading.Event()
+        sampler = threading.Thread(target=_sample_anon, args=(proc.pid, peak, stop), daemon=True)
+        sampler.start()
         _, status, usage = os.wait4(proc.pid, 0)
+        stop.set()
+        sampler.join()
         seconds = time.perf_counter() - start
         code = os.waitstatus_to_exitcode(status)
         proc.returncode = code
         out.seek(0)
         err.seek(0)
-        result = {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024.0, "stdout": out.read(),
+        result = {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024.0, "peak_anon_mb": peak[0] / 1024.0,
+                  "sampled_hwm_mb": peak[1] / 1024.0,
+                  "stdout": out.read(),
                   "stderr": err.read(), "returncode": code}
     if check and code != 0:
         sys.stderr.write(result["stderr"])
@@ -70,27 +97,55 @@ def parse_render_summary(stderr):
 
 
 def write_json(name, data):
+    """Writes bench/results/NAME atomically, unless the run started on a machine whose load
+    average exceeded its core count (then the figures go to bench/results/tmp/ only, and the
+    script exits non-zero)."""
     os.makedirs(RESULTS, exist_ok=True)
-    path = os.path.join(RESULTS, name)
-    with tempfile.NamedTemporaryFile("w", dir=RESULTS, delete=False, suffix=".tmp") as f:
+    refused = _START_LOAD is not None and _START_LOAD > (os.cpu_count() or 1)
+    folder = TMP if refused else RESULTS
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, name)
+    with tempfile.NamedTemporaryFile("w", dir=folder, delete=False, suffix=".tmp") as f:
         json.dump(data, f, indent=1)
         f.write("\n")
     os.replace(f.name, path)
+    if refused:
+        raise SystemExit(f"bench: load average {_START_LOAD:.2f} > {os.cpu_count()} cores at start: results "
+                         f"refused (kept in {path} for inspection); rerun on a quiet machine")
     return path
 
 
 def write_text(name, text):
-    os.makedirs(RESULTS, exist_ok=True)
-    path = os.path.join(RESULTS, name)
-    with tempfile.NamedTemporaryFile("w", dir=RESULTS, delete=False, suffix=".tmp") as f:
+    """Like write_json, for CSV and tables; a refused run's text goes to bench/results/tmp/."""
+    refused = _START_LOAD is not None and _START_LOAD > (os.cpu_count() or 1)
+    folder = TMP if refused else RESULTS
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, name)
+    with tempfile.NamedTemporaryFile("w", dir=folder, delete=False, suffix=".tmp") as f:
         f.write(text)
     os.replace(f.name, path)
     return path
 
 
+_START_LOAD = None
+
+
 def machine():
-    return {"cores": os.cpu_count(), "load_average_at_start": os.getloadavg()[0],
-            "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    """Machine facts and the run's name, recorded at the start of a benchmark. Prints the load
+    average: results measured on a machine busier than its core count are noise, and
+    write_json refuses them."""
+    global _START_LOAD
+    _START_LOAD = os.getloadavg()[0]
+    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip() or "unknown"
+    date = time.strftime("%Y-%m-%d %H:%M:%S")
+    cores = os.cpu_count()
+    print(f"bench: load average {_START_LOAD:.2f} on {cores} cores at start", file=sys.stderr)
+    if _START_LOAD > cores:
+        print(f"bench: the load exceeds the core count: results will not be written to {RESULTS}",
+              file=sys.stderr)
+    return {"cores": cores, "load_average_at_start": _START_LOAD, "date": date, "commit": commit,
+            "run": f"{date[:10]} {commit}"}
 
 
 def adjoint_image(path, width, height):

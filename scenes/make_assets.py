@@ -4,6 +4,10 @@
     scenes/cornell/wall.png      1024x1024 RGB albedo texture of the Cornell box's back wall
     scenes/gltf/checker.png      256x256 RGB base-colour texture of the glTF ground plane
     scenes/gltf/scene.gltf/.bin  a small glTF 2.0 scene (ground, two cubes, emissive quad, camera)
+    scenes/smoke/density.vol     128³ procedural smoke density (Mitsuba .vol; 8 MB, not committed)
+    scenes/smoke/sky.pfm         64x32 sky environment map (latitude-longitude, linear RGB)
+
+`--smoke` makes only the smoke assets (what `tools/quickstart volume` needs).
 
 Deterministic and idempotent: runs from any working directory, writes a file only when its bytes
 change, and reads every output back to check it. Needs Debian's python3 with numpy and matplotlib
@@ -460,9 +464,84 @@ def check_gltf(path):
           f"{len(doc['meshes'])} meshes, {len(doc['materials'])} materials: OK")
 
 
+SMOKE = SCENES / "smoke"
+
+
+def smoke_density(n=128, seed=3):
+    """A rising, swirling plume of wispy blobs with two holes, zero near the box faces.
+
+    Values in [0, 1] on voxel centres, returned as rho[iz, iy, ix] (the .vol order)."""
+    rng = np.random.default_rng(seed)
+    c = (np.arange(n, dtype=np.float64) + 0.5) / n
+    z, y, x = np.meshgrid(c, c, c, indexing="ij")
+    rho = np.zeros((n, n, n))
+    for _ in range(50):  # blobs along a helix, rising in y
+        t = rng.uniform(0.0, 1.0)
+        cx = 0.5 + 0.2 * np.sin(7.0 * t + 1.0) + rng.normal(0, 0.03)
+        cz = 0.5 + 0.2 * np.cos(6.0 * t) + rng.normal(0, 0.03)
+        cy = 0.15 + 0.7 * t
+        r = 0.06 + 0.05 * rng.uniform()
+        rho += rng.uniform(0.4, 1.0) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2) / (2 * r * r))
+    # Wisps: modulation by a few random low-frequency waves (smooth enough for a dozen views to
+    # determine: the optimization job recovers it).
+    wave = np.zeros_like(rho)
+    for _ in range(4):
+        k = rng.uniform(1.0, 3.0, size=3) * rng.choice([-1.0, 1.0], size=3)
+        wave += np.sin(2 * np.pi * (k[0] * x + k[1] * y + k[2] * z) + rng.uniform(0, 2 * np.pi))
+    rho *= np.clip(0.6 + 0.2 * wave, 0.0, None)
+    # Holes.
+    for hx, hy, hz, hr in ((0.55, 0.45, 0.5, 0.09), (0.42, 0.7, 0.45, 0.08)):
+        rho[(x - hx) ** 2 + (y - hy) ** 2 + (z - hz) ** 2 < hr * hr] = 0.0
+    rho *= np.clip((0.47 - np.sqrt((x - 0.5) ** 2 + (z - 0.5) ** 2)) / 0.05, 0.0, 1.0)  # fade at the sides
+    rho *= np.clip((0.97 - y) / 0.05, 0.0, 1.0) * np.clip((y - 0.03) / 0.05, 0.0, 1.0)
+    rho = np.clip(rho / np.percentile(rho[rho > 0], 99.5), 0.0, 1.0)
+    return rho.astype(np.float32)
+
+
+def vol_bytes(rho, bbox):
+    nz, ny, nx = rho.shape
+    header = b"VOL" + bytes([3]) + struct.pack("<5i", 1, nx, ny, nz, 1) + struct.pack("<6f", *bbox)
+    return header + rho.astype("<f4").tobytes()
+
+
+def pfm_bytes(rgb):
+    """Portable float map, rows from the bottom up, little endian."""
+    h, w, _ = rgb.shape
+    return f"PF\n{w} {h}\n-1.0\n".encode() + np.ascontiguousarray(rgb[::-1].astype("<f4")).tobytes()
+
+
+def sky(width=64, height=32):
+    """Blue above, white at the horizon, dim ground; latitude-longitude, row 0 = up."""
+    v = (np.arange(height) + 0.5) / height
+    elevation = (0.5 - v) * np.pi  # +pi/2 at the top row
+    up = np.clip(np.sin(elevation), 0.0, 1.0)[:, None]
+    rgb = np.zeros((height, width, 3))
+    for ch, (horizon, zenith) in enumerate(((0.9, 0.25), (0.95, 0.45), (1.0, 0.9))):
+        rgb[..., ch] = horizon + (zenith - horizon) * up
+    rgb[elevation < 0] *= 0.2
+    return rgb
+
+
+def make_smoke():
+    SMOKE.mkdir(exist_ok=True)
+    rho = smoke_density()
+    data = vol_bytes(rho, (-1.0, 0.0, -1.0, 1.0, 2.0, 1.0))
+    write_if_changed(SMOKE / "density.vol", data)
+    back = np.frombuffer((SMOKE / "density.vol").read_bytes()[48:], dtype="<f4")
+    assert back.size == rho.size and np.array_equal(back, rho.ravel()), "density.vol read-back mismatch"
+    write_if_changed(SMOKE / "sky.pfm", pfm_bytes(sky()))
+
+
 def main():
+    if sys.argv[1:] == ["--smoke"]:
+        make_smoke()
+        return 0
+    if sys.argv[1:]:
+        print("usage: scenes/make_assets.py [--smoke]", file=sys.stderr)
+        return 2
     make_wall()
     make_gltf()
+    make_smoke()
     return 0
 
 

@@ -12,15 +12,16 @@
 
 #include <nlohmann/json.hpp>
 
-#include "engine/errors.h"
-#include "engine/gradient.h"
-#include "engine/image_io.h"
-#include "engine/loss.h"
-#include "engine/optimizer.h"
-#include "engine/progress.h"
-#include "engine/render.h"
-#include "engine/scene_load.h"
-#include "engine/taped.h"
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/integrators/gradient.h"
+#include "engine/io/image_io.h"
+#include "engine/integrators/loss.h"
+#include "engine/optimize/optimizer.h"
+#include "engine/io/progress.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
+#include "engine/integrators/taped.h"
 
 using namespace bl;
 namespace fs = std::filesystem;
@@ -69,6 +70,7 @@ struct SceneFlags {
     }
     if (spp) {
       if (*spp < 1) throw InputError("--spp must be ≥ 1");
+      limits::require_at_most("--spp", "sample count", uint64_t(*spp), limits::kSpp);
       s->settings.spp = *spp;
     }
     if (max_depth) {
@@ -127,6 +129,7 @@ int cmd_render(SceneFlags& f, const std::string& output) {
 }
 
 int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
+  if (!dump.empty()) check_output_folder(dump);  // before printing anything
   auto scene = f.load();
   const auto& params = scene->params;
   if (as_json) {
@@ -139,7 +142,10 @@ int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
       std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(),
                   params[int(i)].size());
   }
-  if (!dump.empty()) dump_parameter_values(params, dump);
+  if (!dump.empty()) {
+    ensure_output_folder(dump);
+    dump_parameter_values(*scene, dump);
+  }
   return 0;
 }
 
@@ -207,6 +213,7 @@ GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std:
 
 int cmd_grad(SceneFlags& f, const GradFlags& g) {
   auto limit = thread_limit(f.threads);
+  check_output_folder(g.out);  // before the work: a bad --out is reported at once
   auto scene = f.load();
   Image target, adjoint;
   GradientRequest rq = make_request(f, *scene, g.method, g.loss, g.target, g.adjoint_image, target, adjoint);
@@ -322,6 +329,10 @@ int main(int argc, char** argv) {
     if (*optimize_cmd) return run_optimize(config, resume, opt_threads, opt_quiet);
   } catch (const InputError& e) {
     std::fprintf(stderr, "backlight: %s\n", e.what());
+    return 2;
+  } catch (const std::filesystem::filesystem_error& e) {
+    // A path the user gave (too long, not permitted, a file where a folder was meant).
+    std::fprintf(stderr, "backlight: %s: %s\n", e.path1().string().substr(0, 200).c_str(), e.code().message().c_str());
     return 2;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "backlight: internal error: %s\n", e.what());

@@ -15,7 +15,7 @@
 // pdf(params, wo, wi): the solid-angle density of `sample`.
 // backprop(params, wo, wi, adjoint): ⟨adjoint, ∂eval/∂p⟩ for every scalar input p, returned as a
 //   params struct of gradients. The material applies the chain rule into texture buffers.
-#include "engine/math.h"
+#include "engine/core/math.h"
 
 namespace bl {
 

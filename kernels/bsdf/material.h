@@ -84,6 +84,9 @@ struct Material {
   TextureSlot roughness;  // roughconductor, roughplastic
   float ior = 1.5f;
   bool two_sided = true;
+  // A null material: an invisible, index-matched boundary. Rays pass straight through with
+  // weight 1; it is not a path vertex (no depth, no light sample) and only switches media.
+  bool is_null = false;
 
   // Evaluates the textures this material's BSDF reads at uv (only those).
   template <class T>

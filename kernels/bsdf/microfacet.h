@@ -2,7 +2,7 @@
 // GGX (Trowbridge–Reitz) microfacet distribution shared by the rough conductor and rough plastic.
 // α is the parameter (Walter et al. 2007); templated on the scalar so derivative shaders can
 // differentiate D and G with respect to α. Directions are floats (detached sampling).
-#include "engine/math.h"
+#include "engine/core/math.h"
 
 namespace bl {
 

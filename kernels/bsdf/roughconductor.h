@@ -4,7 +4,7 @@
 // | specular  | RGB, F(0°)     | yes            |
 // | roughness | GGX α (scalar) | yes (sampling depends on it; it is detached) |
 // f = F(wo·h) D(h) G1(wo) G1(wi) / (4 cos θo cos θi), F = s + (1 − s)(1 − wo·h)⁵.
-#include "engine/dual.h"
+#include "engine/core/dual.h"
 #include "kernels/bsdf/bsdf.h"
 #include "kernels/bsdf/microfacet.h"
 

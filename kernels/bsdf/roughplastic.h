@@ -7,7 +7,7 @@
 // f·cos = Fr(wo·h) D G1 G1 / (4 cos θo)  +  albedo/π · cos θi · (1 − Fr(cos θi)) (1 − Fr(cos θo)).
 // Light transmitted into the base and back out loses (1 − Fr) at each crossing, so the sum never
 // exceeds the incident energy; the white-furnace test checks it.
-#include "engine/dual.h"
+#include "engine/core/dual.h"
 #include "kernels/bsdf/bsdf.h"
 #include "kernels/bsdf/microfacet.h"
 

@@ -5,7 +5,7 @@
 // pdf: the solid-angle density of `sample` for a given direction.
 // backprop: adds the adjoint (RGB) times ∂radiance/∂θ into the radiance parameter's gradient.
 // The light-selection probability (uniform over emitters) is applied by the integrator.
-#include "engine/math.h"
+#include "engine/core/math.h"
 
 namespace bl {
 

@@ -8,8 +8,8 @@
 #include <algorithm>
 #include <cmath>
 
-#include "engine/math.h"
-#include "engine/params.h"
+#include "engine/core/math.h"
+#include "engine/core/params.h"
 
 namespace bl {
 
@@ -23,6 +23,7 @@ struct BilinearFootprint {
 };
 
 inline int wrap_index(long i, int n, Wrap wrap) {
+  if (i >= 0 && i < n) return int(i);  // the common case, without an integer division
   if (wrap == Wrap::Repeat) {
     long m = i % n;
     return int(m < 0 ? m + n : m);

@@ -3,8 +3,8 @@
 // | parameter     | shape | differentiable |
 // | <owner>.<key> | [1] or [3] | yes        |
 // A one-channel constant is broadcast to grey, so its gradient is the sum of the RGB adjoint.
-#include "engine/math.h"
-#include "engine/params.h"
+#include "engine/core/math.h"
+#include "engine/core/params.h"
 
 namespace bl {
 

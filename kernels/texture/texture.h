@@ -5,8 +5,8 @@
 // one-channel texture is broadcast to grey). `backprop(store, uv, adjoint, grads)` adds
 // ⟨adjoint, ∂eval/∂texel⟩ into the texel gradients — the transpose of eval's linear map, which
 // makes it exact for every texel (eval is linear in the texels).
-#include "engine/math.h"
-#include "engine/params.h"
+#include "engine/core/math.h"
+#include "engine/core/params.h"
 #include "kernels/texture/bitmap.h"
 #include "kernels/texture/constant.h"
 

@@ -15,8 +15,8 @@
 #include <cmath>
 #include <sstream>
 
-#include "engine/render.h"
-#include "engine/scene_load.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
 
 using namespace bl;
 

@@ -11,9 +11,9 @@
 #include <cmath>
 #include <cstring>
 
-#include "engine/gradient.h"
-#include "engine/sampler.h"
-#include "engine/scene_load.h"
+#include "engine/integrators/gradient.h"
+#include "engine/core/sampler.h"
+#include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
 using namespace bl;

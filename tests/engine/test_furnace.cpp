@@ -11,8 +11,8 @@
 #include <fstream>
 #include <sstream>
 
-#include "engine/render.h"
-#include "engine/scene_load.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
 using namespace bl;

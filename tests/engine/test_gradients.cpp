@@ -6,8 +6,8 @@
 #include <cmath>
 #include <numeric>
 
-#include "engine/gradient.h"
-#include "engine/scene_load.h"
+#include "engine/integrators/gradient.h"
+#include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
 using namespace bl;

@@ -7,7 +7,7 @@
 #include <set>
 #include <vector>
 
-#include "engine/sampler.h"
+#include "engine/core/sampler.h"
 #include "tests/kernels/chi2.h"
 
 using namespace bl;

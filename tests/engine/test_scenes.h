@@ -6,14 +6,26 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <vector>
 
-#include "engine/image_io.h"
+#include "engine/io/image_io.h"
 
 namespace bl::test {
 
+// A scratch folder for this test process, removed when the process exits normally (a failing
+// test's folder is removed too; the failure message carries what is needed to reproduce it).
 inline std::string temp_dir(const std::string& name) {
+  struct Cleanup {
+    std::vector<std::filesystem::path> dirs;
+    ~Cleanup() {
+      std::error_code ec;
+      for (const auto& d : dirs) std::filesystem::remove_all(d, ec);
+    }
+  };
+  static Cleanup cleanup;
   auto dir = std::filesystem::temp_directory_path() / ("backlight-test-" + name + "-" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
+  cleanup.dirs.push_back(dir);
   return dir.string();
 }
 

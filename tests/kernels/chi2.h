@@ -21,7 +21,7 @@
 
 #include <tbb/parallel_for.h>
 
-#include "engine/math.h"
+#include "engine/core/math.h"
 #include "tests/kernels/spherical_quadrature.h"
 #include "tests/kernels/test_rng.h"
 

@@ -12,8 +12,8 @@
 #include <string>
 #include <vector>
 
-#include "engine/math.h"
-#include "engine/params.h"
+#include "engine/core/math.h"
+#include "engine/core/params.h"
 
 namespace bl::test {
 

@@ -8,7 +8,7 @@
 
 #include <tbb/parallel_for.h>
 
-#include "engine/math.h"
+#include "engine/core/math.h"
 
 namespace bl::test {
 

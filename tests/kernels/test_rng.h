@@ -4,7 +4,7 @@
 // of the renderer's PathSampler (which has its own tests).
 #include <cstdint>
 
-#include "engine/math.h"
+#include "engine/core/math.h"
 
 namespace bl::test {
 

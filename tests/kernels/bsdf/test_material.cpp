@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/tape.h"
+#include "engine/core/tape.h"
 #include "kernels/bsdf/material.h"
 #include "tests/kernels/gradcheck.h"
 #include "tests/kernels/test_rng.h"

@@ -1,0 +1,227 @@
+// Adjoint integrators: path replay backpropagation (prb, Vicini et al. 2021) and radiative
+// backpropagation (rb, Nimier-David et al. 2020). Both run the primal path loop of engine/integrators/path.h
+// with an observer that receives every contribution the estimator makes and calls the derivative
+// shaders; nothing is stored per sample or per vertex.
+#include <tbb/enumerable_thread_specific.h>
+
+#include <atomic>
+
+#include "engine/integrators/path.h"
+#include "engine/io/progress.h"
+#include "engine/integrators/render.h"
+
+namespace bl {
+
+namespace {
+
+// Path replay. The estimator is a sum of contributions, each a product of the factors met along
+// the path. Given δ (the adjoint of this sample's radiance):
+//  - emission: contribution = (β w) Le → δ·β·w flows into Le;
+//  - NEE: contribution = β f Le w / p → δ·β·Le·w/p into f, δ·β·f·w/p into Le;
+//  - BSDF sample at a vertex: every later contribution carries the factor f/pdf, so
+//    ∂(rest)/∂f = rest / f with rest = L − (radiance so far) (the "radiance to come").
+// Sampling decisions (directions, pdfs, MIS weights, roulette) are constants, matching the
+// detached convention of the primal loop.
+// Media (differential delta and ratio tracking, Nimier-David et al. 2022), with rest = L − radiance
+// so far:
+//  - a tentative collision of delta tracking multiplies everything after it by σ_t/σ_t (real) or
+//    (σ̄ − σ_t)/(σ̄ − σ_t) (null), 1 in value: ∂σ_t gets ⟨δ, rest⟩/σ_t or −⟨δ, rest⟩/(σ̄ − σ_t);
+//  - a medium vertex multiplies its light sample and everything after by the albedo (δ·rest/albedo
+//    per channel) and the continuation by p(wi, wo)/pdf (⟨δ, rest after its light sample⟩ ∂log p);
+//  - a light sample through media carries T = Π(1 − σ_t/σ̄): each point of the shadow ray gets
+//    −⟨δ, contribution⟩/(σ̄ − σ_t), found by tracking the same ray again with the same numbers.
+struct ReplayObserver {
+  static constexpr bool kActive = true;
+  const Scene& scene;
+  GradientAccumulator& grads;
+  Vec3f delta;                // ∂loss/∂(this sample's radiance)
+  Vec3f total_radiance;       // this sample's primal estimate, from the first run of the same path
+  VisibilityBits visibility;  // that run's shadow-ray answers
+
+  // BSDF gradients of one vertex (from NEE and from the BSDF sample) are summed and pushed into
+  // the textures once, when the path moves on: half the texel scatters of doing it per event.
+  const VertexRef* pending = nullptr;
+  VertexRef pending_ref;
+  BsdfGradient pending_gradient;
+
+  void add_bsdf_adjoint(const VertexRef& v, const Vec3f& wi, const Vec3f& adjoint) {
+    if (!pending || pending_ref.vertex != v.vertex) {
+      flush();
+      pending_ref = v;
+      pending = &pending_ref;
+      pending_gradient = {};
+    }
+    pending_gradient += v.material->bsdf_backprop(*v.value, v.wo, wi, adjoint);
+  }
+  // Must be called once the path is done.
+  void flush() {
+    if (pending) pending_ref.material->texture_backprop(scene.params, pending_ref.uv, pending_gradient, grads);
+    pending = nullptr;
+  }
+
+  void emission(const EmissionRef& e, const Vec3f& weight, const Vec3f&) {
+    emitter_backprop(scene, e, delta * weight, grads);
+  }
+  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  }
+  bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
+  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
+           const Vec3f& emitter_weight, const Vec3f&) {
+    if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
+    emitter_backprop(scene, e, delta * emitter_weight, grads);
+  }
+  void flight_collision(const Medium& m, const Vec3f& x, float sigma, float majorant, bool real,
+                        const Vec3f& radiance_so_far) {
+    if (!m.wants_sigma_grad(grads)) return;
+    const float rest = dot(delta, total_radiance - radiance_so_far);
+    if (rest == 0.f) return;
+    if (real)
+      m.backprop_sigma_t(scene.params, x, rest / sigma, grads);
+    else if (majorant > sigma)
+      m.backprop_sigma_t(scene.params, x, -rest / (majorant - sigma), grads);
+  }
+  void medium_nee(const Medium& m, const Vec3f&, const Vec3f& wi, const Vec3f& wl, float phase_value,
+                  const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution, const ShadowRef& shadow) {
+    emitter_backprop(scene, e, delta * emitter_weight, grads);
+    const float weight = dot(delta, contribution);
+    if (weight == 0.f) return;
+    if (phase_value > 0.f) m.backprop_phase(scene.params, wi, wl, weight / phase_value, grads);
+    shadow_transmittance_backprop(scene, shadow, weight, grads);
+  }
+  void medium_vertex(const Medium& m, const Vec3f& x, const Vec3f& wi, const Vec3f& wo, const Vec3f& albedo,
+                     const Vec3f& radiance_before, const Vec3f& radiance_after_nee) {
+    const Vec3f rest = total_radiance - radiance_before;
+    Vec3f adjoint;
+    for (int c = 0; c < 3; ++c) adjoint[c] = albedo[c] != 0.f ? delta[c] * rest[c] / albedo[c] : 0.f;
+    m.backprop_albedo(scene.params, x, adjoint, grads);
+    const float continuation = dot(delta, total_radiance - radiance_after_nee);
+    if (continuation != 0.f) {
+      const float p = hg_eval(m.phase<float>(scene.params), wi, wo);
+      if (p > 0.f) m.backprop_phase(scene.params, wi, wo, continuation / p, grads);
+    }
+  }
+  void shadow(const ShadowRef& ref, const Vec3f& contribution) {
+    shadow_transmittance_backprop(scene, ref, dot(delta, contribution), grads);
+  }
+  void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
+               const Vec3f& radiance_so_far, int, const Ray&) {
+    if (!v.material->wants_grad(grads)) return;
+    const Vec3f radiance_to_come = total_radiance - radiance_so_far;
+    Vec3f adjoint;
+    for (int c = 0; c < 3; ++c) adjoint[c] = f[c] != 0.f ? delta[c] * radiance_to_come[c] / f[c] : 0.f;
+    add_bsdf_adjoint(v, wi, adjoint);
+  }
+};
+
+// Radiative backpropagation: at each BSDF sample the incident radiance the derivative needs is
+// estimated by an independent path (its own random numbers), so the cost is quadratic in depth.
+// Emission and NEE terms are local and handled exactly as in replay.
+struct RadiativeObserver {
+  static constexpr bool kActive = true;
+  const Scene& scene;
+  GradientAccumulator& grads;
+  Vec3f delta;
+  uint64_t seed, pixel, sample;
+  VisibilityBits visibility;
+  ReplayObserver local{scene, grads, delta, Vec3f(0.f), visibility};
+
+  void emission(const EmissionRef& e, const Vec3f& w, const Vec3f& c) { local.emission(e, w, c); }
+  void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bw, const Vec3f& ew,
+           const Vec3f& c) {
+    local.nee(v, wi, e, bw, ew, c);
+  }
+  void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f&, float pdf, float q, const Vec3f& beta_before,
+               const Vec3f&, int vertex, const Ray& next) {
+    if (!v.material->wants_grad(grads)) return;
+    PathSampler independent(mix64(seed ^ 0x5eed0fadull) + uint64_t(vertex), pixel, sample);
+    NoObserver none;
+    Vec3f incident = trace_path<float>(scene, PathStart{next, vertex + 1, pdf}, independent, none);
+    local.add_bsdf_adjoint(v, wi, delta * beta_before * incident / (pdf * q));
+  }
+  void flush() { local.flush(); }
+  // rb refuses scenes with media (compute_gradient): its independent estimates would start in
+  // the wrong medium.
+  void flight_collision(const Medium&, const Vec3f&, float, float, bool, const Vec3f&) {}
+  void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
+                     const Vec3f&) {}
+  void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,
+                  const Vec3f&, const ShadowRef&) {}
+  void shadow(const ShadowRef&, const Vec3f&) {}
+  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  }
+  bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
+};
+
+}  // namespace
+
+PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, const PixelAdjoint& adjoint,
+                   Image* image_out) {
+  const Camera& cam = scene.cameras.at(size_t(o.camera));
+  if (image_out) *image_out = Image(cam.width, cam.height, 3);
+  GradientSink sink(scene.params);
+  // Per-thread scratch for one pixel's samples: radiance and shadow-ray answers of each (reused
+  // from pixel to pixel; nothing is allocated per sample or per vertex).
+  struct SampleRecord {
+    Vec3f radiance;
+    VisibilityBits visibility;
+  };
+  tbb::enumerable_thread_specific<std::vector<SampleRecord>> scratch(
+      [&] { return std::vector<SampleRecord>(size_t(o.spp)); });
+  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
+                    uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
+  std::atomic<uint64_t> rays{0};
+  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
+    const uint64_t rays_before = Geometry::thread_ray_count();
+    GradientAccumulator& grads = sink.local();
+    std::vector<SampleRecord>& records = scratch.local();
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x) {
+        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+        auto start_of = [&](const PathSampler& sampler) {
+          return PathStart{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
+                           cam.medium};
+        };
+        // 1. Primal estimates of this pixel's samples.
+        Vec3d sum(0.0);  // the same summation as render(), so both give the same image
+        for (int s = 0; s < o.spp; ++s) {
+          PathSampler sampler(o.seed, pixel, uint64_t(s));
+          VisibilityRecorder recorder;
+          records[size_t(s)].radiance = trace_path<float>(scene, start_of(sampler), sampler, recorder);
+          records[size_t(s)].visibility = recorder.bits;
+          sum += Vec3d(records[size_t(s)].radiance);
+        }
+        const Vec3f value(sum / double(o.spp));
+        if (image_out)
+          for (int c = 0; c < 3; ++c) image_out->at(x, y, c) = value[c];
+        // 2. δ per sample: the film's transpose (box filter, mean over spp).
+        const Vec3f delta = adjoint(size_t(pixel), value) / float(o.spp);
+        if (is_zero(delta)) continue;
+        // 3. Transport δ back through the scene.
+        for (int s = 0; s < o.spp; ++s) {
+          PathSampler sampler(o.seed, pixel, uint64_t(s));
+          if (method == AdjointMethod::Prb) {
+            ReplayObserver replay{scene, grads, delta, records[size_t(s)].radiance, records[size_t(s)].visibility};
+            trace_path<float>(scene, start_of(sampler), sampler, replay);
+            replay.flush();
+          } else {
+            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s), records[size_t(s)].visibility};
+            trace_path<float>(scene, start_of(sampler), sampler, rb);
+            rb.flush();
+          }
+        }
+      }
+    rays += Geometry::thread_ray_count() - rays_before;
+    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
+  });
+  progress.finish();
+  sink.reduce();
+  PassStats stats;
+  stats.seconds = progress.elapsed();
+  stats.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
+  stats.rays = rays.load();
+  return stats;
+}
+
+}  // namespace bl

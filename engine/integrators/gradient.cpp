@@ -1,0 +1,255 @@
+#include "engine/integrators/gradient.h"
+
+#include "engine/io/grid_view.h"
+#include "engine/scene/openvdb_io.h"
+#include "engine/scene/volume_io.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <random>
+
+#include <nlohmann/json.hpp>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/taped.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+GradientMethod parse_method(const std::string& name) {
+  if (name == "prb") return GradientMethod::Prb;
+  if (name == "rb") return GradientMethod::Rb;
+  if (name == "taped") return GradientMethod::Taped;
+  throw InputError("unknown method '" + name + "' (expected prb, rb or taped)");
+}
+
+const char* method_name(GradientMethod m) {
+  switch (m) {
+    case GradientMethod::Prb:
+      return "prb";
+    case GradientMethod::Rb:
+      return "rb";
+    case GradientMethod::Taped:
+      return "taped";
+  }
+  return "?";
+}
+
+namespace {
+Vec3f pixel_of(const Image& img, size_t pixel) {
+  return {img.data[pixel * 3], img.data[pixel * 3 + 1], img.data[pixel * 3 + 2]};
+}
+double functional(const Image& a, const Image& img) {
+  double f = 0;
+  for (size_t i = 0; i < img.data.size(); ++i) f += double(a.data[i]) * double(img.data[i]);
+  return f;
+}
+}  // namespace
+
+GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
+  if (!rq.accumulate) scene.params.zero_grad();
+  GradientResult result;
+  const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
+  const double values = double(cam.width) * double(cam.height) * 3.0;
+  if (rq.method == GradientMethod::Taped) return taped_gradient(scene, rq);
+  if (rq.method == GradientMethod::Rb && !scene.media.empty())
+    throw InputError(scene.source + ": rb does not support scenes with media yet (use --method prb or taped)");
+  const AdjointMethod method = rq.method == GradientMethod::Prb ? AdjointMethod::Prb : AdjointMethod::Rb;
+  PassOptions adj = rq.pass;
+  adj.seed = rq.adjoint_seed;
+
+  if (rq.adjoint_image) {
+    const Image& a = *rq.adjoint_image;
+    if (rq.adjoint_seed == rq.pass.seed) {
+      PassStats s = backward(
+          scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }, &result.image);
+      result.adjoint_seconds = s.seconds;
+    } else {
+      PassStats ps;
+      result.image = render(scene, rq.pass, &ps);
+      result.primal_seconds = ps.seconds;
+      result.adjoint_seconds =
+          backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(a, p); }).seconds;
+    }
+    result.loss = functional(a, result.image);
+    return result;
+  }
+
+  if (!rq.target) throw InputError("grad needs --target or --adjoint-image");
+  const Image& t = *rq.target;
+  if (rq.adjoint_seed == rq.pass.seed) {
+    // Fused: the loss gradient of a pixel is known as soon as the pixel is rendered.
+    PassStats s = backward(
+        scene, adj, method,
+        [&](size_t p, const Vec3f& value) {
+          Vec3f g;
+          loss_pixel(rq.loss, value, pixel_of(t, p), values, &g);
+          return g;
+        },
+        &result.image);
+    result.adjoint_seconds = s.seconds;
+    // The loss value is summed afterwards in pixel order, so it does not depend on scheduling.
+    result.loss = compute_loss(rq.loss, result.image, t).value;
+  } else {
+    PassStats ps;
+    result.image = render(scene, rq.pass, &ps);
+    result.primal_seconds = ps.seconds;
+    LossResult lr = compute_loss(rq.loss, result.image, t);
+    result.loss = lr.value;
+    result.adjoint_seconds =
+        backward(scene, adj, method, [&](size_t p, const Vec3f&) { return pixel_of(lr.adjoint, p); }).seconds;
+  }
+  return result;
+}
+
+std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
+                                        int directions, double eps, uint64_t direction_seed) {
+  int h = scene.params.find(name);
+  if (h < 0) throw InputError("unknown parameter '" + name + "' (see `backlight params`)");
+  scene.params.require_grad({name});
+  GradientRequest quiet = rq;
+  quiet.pass.progress = false;
+  compute_gradient(scene, quiet);
+  const std::vector<float> gradient = scene.params[h].grad;
+  const std::vector<float> theta = scene.params[h].value;
+
+  auto loss_at = [&](const std::vector<float>& v) {
+    scene.params[h].value = v;  // sampling tables are deliberately not rebuilt (see header)
+    Image img = render(scene, quiet.pass);
+    return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
+  };
+  std::mt19937_64 rng(direction_seed);
+  std::normal_distribution<double> normal;
+  std::vector<CheckRow> rows;
+  for (int d = 0; d < directions; ++d) {
+    // Elements are i.i.d. standard normal (not a unit vector): every element moves by about eps,
+    // which keeps the perturbation far above float resolution even for million-texel buffers.
+    std::vector<double> v(theta.size());
+    for (auto& x : v) x = normal(rng);
+    CheckRow row;
+    std::vector<float> plus(theta.size()), minus(theta.size());
+    for (size_t i = 0; i < v.size(); ++i) {
+      row.adjoint += double(gradient[i]) * v[i];
+      plus[i] = float(double(theta[i]) + eps * v[i]);
+      minus[i] = float(double(theta[i]) - eps * v[i]);
+    }
+    // The adjoint side predicts the change for the step float can actually represent,
+    // ⟨∇loss, plus − minus⟩ / 2ε, so rounding of θ ± εv does not count as gradient error.
+    double predicted = 0;
+    for (size_t i = 0; i < v.size(); ++i) predicted += double(gradient[i]) * (double(plus[i]) - double(minus[i]));
+    row.adjoint = predicted / (2 * eps);
+    row.finite_difference = (loss_at(plus) - loss_at(minus)) / (2 * eps);
+    row.relative_error =
+        std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
+    rows.push_back(row);
+  }
+  scene.params[h].value = theta;
+  return rows;
+}
+
+namespace {
+// A grid parameter's values (or gradient) as a VolumeGrid in its medium's box.
+VolumeGrid grid_values(const Scene& scene, const Param& p, const std::vector<float>& values) {
+  VolumeGrid g;
+  g.z = p.shape[0], g.y = p.shape[1], g.x = p.shape[2], g.channels = p.shape[3];
+  g.data = values;
+  for (const auto& m : scene.media)
+    if (m.grid && (scene.params[m.density].name == p.name || scene.params[m.albedo].name == p.name))
+      g.bbox_min = m.bbox_min, g.bbox_max = m.bbox_max;
+  return g;
+}
+
+// <stem>.vdb, <stem>.vol and <stem>.png (mid-slices and maximum projection; for gradients, of
+// |value|, scaled to the largest).
+void write_grid_files(const Scene& scene, const Param& p, const std::vector<float>& values, const std::string& stem,
+                      bool magnitude) {
+  const VolumeGrid g = grid_values(scene, p, values);
+  write_vdb(stem + ".vdb", g, p.name);
+  write_vol(stem + ".vol", g);
+  std::vector<float> shown = values;
+  float vmax = 0.f;
+  for (float& v : shown) vmax = std::max(vmax, v = magnitude ? std::abs(v) : v);
+  if (magnitude) {  // Monte Carlo gradients have outliers: scale to the 99th percentile instead
+    std::vector<float> sorted = shown;
+    const size_t k = sorted.size() * 99 / 100;
+    std::nth_element(sorted.begin(), sorted.begin() + ptrdiff_t(k), sorted.end());
+    if (sorted[k] > 0.f) vmax = sorted[k];
+  }
+  write_grid_picture(stem + ".png", grid_sheet({&shown, g.x, g.y, g.z, g.channels}, vmax > 0.f ? vmax : 1.f));
+}
+}  // namespace
+
+void dump_parameter_values(const Scene& scene, const std::string& dir) {
+  const ParamStore& params = scene.params;
+  ensure_output_folder(dir);
+  nlohmann::json small = nlohmann::json::object();
+  for (const auto& p : params.all()) {
+    if (p.shape.size() == 4) {
+      write_grid_files(scene, p, p.value, (fs::path(dir) / p.name).string(), false);
+    } else if (p.is_image()) {
+      Image img(p.width(), p.height(), p.channels());
+      img.data = p.value;
+      write_image((fs::path(dir) / (p.name + ".exr")).string(), img);
+    } else {
+      small[p.name] = {{"shape", p.shape}, {"value", p.value}};
+    }
+  }
+  write_text_atomic((fs::path(dir) / "params.json").string(), small.dump(1) + "\n");
+}
+
+void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const GradientResult& r,
+                            const std::string& dir) {
+  ensure_output_folder(dir);
+  write_image((fs::path(dir) / "image.exr").string(), r.image);
+  nlohmann::json j;
+  j["method"] = method_name(rq.method);
+  if (rq.adjoint_image) {
+    j["functional"] = r.loss;
+    // Per channel, summed in double: Σ a_c·I_c (e.g. to check an exact emitter gradient).
+    std::vector<double> per_channel(3, 0.0);
+    for (size_t i = 0; i < r.image.data.size(); ++i)
+      per_channel[i % 3] += double(rq.adjoint_image->data[i]) * double(r.image.data[i]);
+    j["functional_per_channel"] = per_channel;
+  } else {
+    j["loss"] = r.loss;
+    j["loss_type"] = loss_name(rq.loss);
+  }
+  j["spp"] = rq.pass.spp;
+  j["seed"] = rq.pass.seed;
+  j["adjoint_seed"] = rq.adjoint_seed;
+  j["max_depth"] = scene.settings.max_depth;
+  j["rr_depth"] = scene.settings.rr_depth;
+  j["timings"] = {{"primal_seconds", r.primal_seconds},
+                  {"adjoint_seconds", r.adjoint_seconds},
+                  {"total_seconds", r.primal_seconds + r.adjoint_seconds}};
+  if (rq.method == GradientMethod::Taped) j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}};
+  nlohmann::json params = nlohmann::json::object();
+  for (const auto& p : scene.params.all()) {
+    if (!p.requires_grad) continue;
+    double norm = 0;
+    for (float g : p.grad) norm += double(g) * double(g);
+    nlohmann::json e{{"shape", p.shape}, {"size", p.size()}, {"grad_norm", std::sqrt(norm)}};
+    if (p.size() <= 64) {
+      e["grad"] = p.grad;
+    } else if (p.shape.size() == 4) {
+      write_grid_files(scene, p, p.grad, (fs::path(dir) / (p.name + ".grad")).string(), true);
+      e["file"] = p.name + ".grad.vdb";
+      e["files"] = {p.name + ".grad.vdb", p.name + ".grad.vol", p.name + ".grad.png"};
+    } else {
+      std::string file = p.name + ".grad.exr";
+      Image img(p.width(), p.height(), p.channels());
+      img.data = p.grad;
+      if (!p.is_image()) img = Image(int(p.size()), 1, 1), img.data = p.grad;
+      write_image((fs::path(dir) / file).string(), img);
+      e["file"] = file;
+    }
+    params[p.name] = e;
+  }
+  j["parameters"] = params;
+  write_text_atomic((fs::path(dir) / "gradients.json").string(), j.dump(1) + "\n");
+}
+
+}  // namespace bl

@@ -1,0 +1,60 @@
+#pragma once
+// Gradient runs shared by `backlight grad`, `backlight check`, the optimizer and the tests.
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "engine/integrators/loss.h"
+#include "engine/integrators/render.h"
+
+namespace bl {
+
+enum class GradientMethod { Prb, Rb, Taped };
+GradientMethod parse_method(const std::string& name);
+const char* method_name(GradientMethod m);
+
+struct GradientRequest {
+  GradientMethod method = GradientMethod::Prb;
+  LossType loss = LossType::L2;
+  const Image* target = nullptr;         // loss mode
+  const Image* adjoint_image = nullptr;  // linear functional F = Σ a·I instead of a loss
+  PassOptions pass;                      // camera, spp, seed of the primal (loss) render
+  uint64_t adjoint_seed = 0;             // seed of the adjoint pass (equal: exact derivative)
+  size_t memory_budget = 0;              // taped mode only: bytes (0 = 80% of physical memory)
+  bool accumulate = false;               // add to the grad buffers instead of zeroing them first
+};
+
+struct GradientResult {
+  double loss = 0;  // the loss, or F for an adjoint image
+  Image image;      // the primal render the loss was computed on
+  double primal_seconds = 0, adjoint_seconds = 0;
+  uint64_t tape_bytes = 0, tape_entries = 0;  // taped mode
+};
+
+// Computes the gradient into the ParamStore's grad buffers (zeroed first) for the parameters
+// marked requires_grad. When adjoint_seed == seed, the primal render and the adjoint pass are
+// fused: each pixel is rendered once, its loss gradient taken, and its paths replayed.
+GradientResult compute_gradient(Scene& scene, const GradientRequest& request);
+
+// One row of a directional-derivative check.
+struct CheckRow {
+  double adjoint = 0;            // ⟨∇loss, v⟩ from the adjoint pass
+  double finite_difference = 0;  // (loss(θ+εv) − loss(θ−εv)) / 2ε, primal renders at the same seed
+  double relative_error = 0;
+};
+
+// For `directions` random directions v with i.i.d. standard-normal elements (seeded,
+// reproducible), steps ±eps·v,
+// compares the adjoint with central differences at the same seed. Sampling distributions that
+// depend on parameters (environment importance sampling) are held fixed, so both sides
+// differentiate the same estimator.
+std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
+                                        int directions, double eps, uint64_t direction_seed);
+
+// Output helpers (atomic writes).
+void write_gradient_outputs(const Scene& scene, const GradientRequest& request, const GradientResult& result,
+                            const std::string& dir);
+// Parameter values: images as EXR, grids as .vdb, .vol and a PNG sheet, the rest in params.json.
+void dump_parameter_values(const Scene& scene, const std::string& dir);
+
+}  // namespace bl

@@ -1,0 +1,417 @@
+#pragma once
+// The path loop: unidirectional path tracing with next-event estimation and MIS (power
+// heuristic), Russian roulette and Mitsuba 3's max-depth convention (max_depth counts path
+// segments, the camera ray included).
+//
+// One loop serves every integrator (DESIGN.md, property 6):
+//  - `path` (primal) runs it on float with no observer;
+//  - the taped mode runs it on a tape scalar, recording every parameter-dependent operation;
+//  - `prb` runs it on float with an observer that receives each contribution as it is made and
+//    calls the derivative shaders (path replay), and `rb` with one that estimates incident
+//    radiance independently.
+// Sampling is detached: directions, pdfs, MIS weights and roulette decisions are computed from
+// plain float values and are constants of differentiation, so all modes make the same decisions
+// for the same random numbers.
+#include <cmath>
+#include <limits>
+
+#include "engine/core/sampler.h"
+#include "kernels/medium/medium.h"
+#include "engine/scene/scene.h"
+
+namespace bl {
+
+// Where emitted radiance came from: an area emitter (index, uv) or the environment (direction).
+struct EmissionRef {
+  int area = -1;  // index into Scene::area_emitters; -1 = environment
+  Vec2f uv;
+  Vec3f direction;  // for the environment: direction towards it
+};
+
+// What a derivative shader needs about a scattering vertex.
+struct VertexRef {
+  const Material* material = nullptr;
+  const BsdfValue<float>* value = nullptr;  // the material's textures evaluated at uv (detached)
+  Vec2f uv;
+  Vec3f wo;  // local shading frame
+  int vertex = 0;
+};
+
+// A shadow ray through media, enough to track it again with the same random numbers.
+struct ShadowRef {
+  Vec3f origin, direction;
+  float tmax = 0.f;
+  int medium = -1;  // the medium it starts in
+  uint64_t path_key = 0;
+  int vertex = 0;
+};
+
+// Observer that ignores everything (primal and taped modes).
+struct NoObserver {
+  static constexpr bool kActive = false;
+  // Media (see trace_path): a tentative collision of delta tracking; a medium vertex after its
+  // light sample and phase sample; the light sample of a medium vertex; the transmittance of a
+  // surface vertex's shadow ray.
+  void flight_collision(const Medium&, const Vec3f&, float, float, bool, const Vec3f&) {}
+  void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
+                     const Vec3f&) {}
+  void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,
+                  const Vec3f&, const ShadowRef&) {}
+  void shadow(const ShadowRef&, const Vec3f&) {}
+  void emission(const EmissionRef&, const Vec3f&, const Vec3f&) {}
+  void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
+  void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
+               const Ray&) {}
+  // The shadow-ray query of next-event estimation at surface vertex `vertex`.
+  bool occluded(const Scene& scene, int, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    return scene.occluded(origin, direction, tmax);
+  }
+  // Whether next-event estimation at `vertex` can contribute at all. Only a replay knows better
+  // (from the first run's shadow-ray answers); it then skips the emitter sample and both evals.
+  bool nee_may_contribute(int) const { return true; }
+};
+
+// Shadow-ray answers of one path, one bit per surface vertex. The adjoint pass records them while
+// computing a sample's radiance and hands them to the replay of the same sample: the answers are a
+// function of the same random numbers, so the replay need not cast its shadow rays again.
+struct VisibilityBits {
+  static constexpr int kVertices = 64;  // deeper vertices are queried again
+  uint64_t queried = 0, blocked = 0;
+};
+
+// First run of a path in the adjoint pass: no events, shadow-ray answers recorded.
+struct VisibilityRecorder : NoObserver {
+  VisibilityBits bits;
+  bool occluded(const Scene& scene, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
+    const bool blocked = scene.occluded(origin, direction, tmax);
+    if (vertex < VisibilityBits::kVertices) {
+      bits.queried |= uint64_t(1) << vertex;
+      if (blocked) bits.blocked |= uint64_t(1) << vertex;
+    }
+    return blocked;
+  }
+};
+
+// Replay side: whether NEE at `vertex` contributed in the recorded run. A vertex whose shadow ray
+// was never cast (emitter sample with pdf 0, or a zero BSDF value towards it) or was blocked
+// contributed nothing, and the replay of the same random numbers would compute the same nothing.
+inline bool replay_nee_may_contribute(const VisibilityBits& bits, int vertex) {
+  if (vertex >= VisibilityBits::kVertices) return true;
+  return (bits.queried >> vertex & 1u) && !(bits.blocked >> vertex & 1u);
+}
+
+// Replay side: answers from the recorded bits when present.
+inline bool replay_occluded(const Scene& scene, const VisibilityBits& bits, int vertex, const Vec3f& origin,
+                            const Vec3f& direction, float tmax) {
+  if (vertex < VisibilityBits::kVertices && (bits.queried >> vertex & 1u)) return (bits.blocked >> vertex & 1u) != 0;
+  return scene.occluded(origin, direction, tmax);
+}
+
+inline float power_heuristic(float a, float b) {
+  float a2 = a * a, b2 = b * b;
+  return a2 + b2 > 0.f ? a2 / (a2 + b2) : 0.f;
+}
+
+inline void emitter_backprop(const Scene& scene, const EmissionRef& e, const Vec3f& adjoint, GradientAccumulator& g) {
+  if (e.area >= 0)
+    scene.area_emitters[size_t(e.area)].backprop(scene.params, e.uv, 1.f, adjoint, g);  // front side by construction
+  else
+    scene.environment.backprop(scene.params, e.direction, adjoint, g);
+}
+
+// Where a path starts: the camera ray (vertex 1 is its first hit) or, for rb's independent
+// estimates, a ray leaving a surface vertex after a BSDF sample of solid-angle pdf `bsdf_pdf`.
+struct PathStart {
+  Ray ray;
+  int first_vertex = 1;
+  float bsdf_pdf = 0.f;  // 0: the ray was not BSDF-sampled (no MIS on what it hits)
+  int medium = -1;       // the medium the ray starts in (the camera's), -1 = vacuum
+};
+
+// Transmittance of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking
+// through every medium on the way, crossing null surfaces (the caller has checked that no other
+// surface blocks it). One tracking stream per (path, vertex): the replay regenerates it.
+struct NoShadowEvents {
+  void operator()(const Medium&, const Vec3f&, float, float) const {}
+};
+
+template <class T, class OnPoint = NoShadowEvents>
+T shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, int medium, TrackingSampler& rng,
+                       OnPoint&& on_point = {}) {
+  T tr = T(1.f);
+  for (int k = 0; k <= kMaxNullCrossings; ++k) {
+    const Hit hit = scene.has_null_surfaces ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
+    const float seg = hit.mesh < 0 ? tmax : hit.t;
+    if (medium >= 0) {
+      const Medium& med = scene.media[size_t(medium)];
+      tr = tr * medium_transmittance<T>(med, scene.params, o, d, seg, rng,
+                                        [&](const Vec3f& x, float sigma, float majorant, bool) {
+                                          on_point(med, x, sigma, majorant);
+                                        });
+      if (value_of(tr) == 0.f) return tr;
+    }
+    if (hit.mesh < 0) return tr;
+    const Mesh& m = scene.meshes[size_t(hit.mesh)];
+    if (!scene.materials[size_t(m.material)].is_null) return T(0.f);
+    const Vec3f ng = m.face_normals[size_t(hit.triangle)];
+    medium = scene.medium_after(m, d, ng, medium);
+    const Vec3f next = offset_origin(o + d * hit.t, ng, d);
+    tmax -= length(next - o);
+    o = next;
+    if (!(tmax > 0.f)) return tr;
+  }
+  return tr;
+}
+
+inline TrackingSampler shadow_sampler(uint64_t path_key, int vertex) { return {path_key, vertex, 1u}; }
+
+// The derivative of a ratio-tracked transmittance Π (1 − σ_t(x_i)/σ̄_i): each point contributes
+// −∂σ_t(x_i) / (σ̄_i − σ_t(x_i)) to ∂ log T. Tracks the same shadow ray again (same stream) and
+// adds weight · that into the media's parameters (weight = ⟨δ, contribution the ray carried⟩).
+inline void shadow_transmittance_backprop(const Scene& scene, const ShadowRef& ref, float weight,
+                                          GradientAccumulator& grads) {
+  if (weight == 0.f) return;
+  TrackingSampler rng = shadow_sampler(ref.path_key, ref.vertex);
+  shadow_transmittance<float>(scene, ref.origin, ref.direction, ref.tmax, ref.medium, rng,
+                              [&](const Medium& m, const Vec3f& x, float sigma, float majorant) {
+                                if (m.wants_sigma_grad(grads) && majorant > sigma)
+                                  m.backprop_sigma_t(scene.params, x, -weight / (majorant - sigma), grads);
+                              });
+}
+
+// Traces one path and returns its radiance estimate. Observer events (float values only):
+//  emission(ref, weight, contribution)      contribution = weight · Le, weight = β · w_mis
+//  nee(vertex, wi, ref, bsdf_adjoint_w, emitter_adjoint_w, contribution)
+//      contribution = β f Le w / p_light; bsdf_adjoint_w = β Le w / p_light; emitter_adjoint_w = β f w / p_light
+//  scatter(vertex, wi, f, pdf, q, beta_before, radiance_so_far, vertex_index, next_ray)
+//      after the BSDF sample and roulette survived: β ← β f / (pdf q)
+//
+// Media (Mitsuba 3 volpath conventions, ../shared/reference/mitsuba3-volume/README.md): inside a
+// medium, each segment is tracked (delta tracking against the medium's majorants); a real
+// collision is a path vertex like a surface hit (it counts towards max_depth, takes one light
+// sample with MIS against phase sampling, then samples the phase function), a null collision is
+// not. Null surfaces only switch the medium: no vertex, no light sample, and the MIS reference
+// point stays at the last real vertex. Shadow rays cross null surfaces, their transmittance
+// estimated by ratio tracking. Medium events for the adjoint (float values):
+//  flight_collision(medium, x, σ_t, σ̄, real, radiance_so_far)   every tentative collision
+//  medium_nee(medium, x, wi, wl, p(wi, wl), ref, emitter_weight, contribution, shadow)
+//  medium_vertex(medium, x, wi, wo, albedo, radiance_before_vertex, radiance_after_its_nee)
+//  shadow(shadow, contribution)   the transmittance of a surface vertex's light sample
+template <class T, class Observer>
+Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSampler& sampler, Observer& observer) {
+  const IntegratorSettings& st = scene.settings;
+  const ParamStore& params = scene.params;
+  const float select_pdf = scene.emitter_select_probability();
+  const int area_count = int(scene.area_emitters.size());
+  const bool has_emitters = area_count > 0 || scene.environment.present;
+  Spectrum<T> radiance(T(0.f)), beta(T(1.f));
+  Ray ray = start.ray;
+  float mis_bsdf_pdf = start.bsdf_pdf;
+  int medium = start.medium;
+  float travelled = 0.f;      // distance from the last real vertex along `ray`'s direction (null crossings)
+  uint32_t flight = 0;        // free-flight tracking streams used so far
+  int null_crossings = 0;
+
+  for (int vertex = start.first_vertex;;) {
+    const Hit hit = scene.geometry->intersect(ray);
+    const bool visible_emitter = !(vertex == 1 && st.hide_emitters);
+
+    // Inside a medium: free flight up to the surface (or to infinity).
+    if (medium >= 0) {
+      const Medium& med = scene.media[size_t(medium)];
+      TrackingSampler rng(sampler.key(), int(flight++), 0x10000u);
+      const float t_max = hit.mesh < 0 ? std::numeric_limits<float>::infinity() : hit.t;
+      const Vec3f radiance_so_far = value_of(radiance);
+      const FreeFlight<T> ff = medium_free_flight<T>(
+          med, params, ray.origin, ray.direction, t_max, rng, [&](const Vec3f& x, float sigma, float majorant, bool real) {
+            if constexpr (Observer::kActive) observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
+          });
+      beta = beta * ff.weight;
+      if (ff.collided) {
+        if (st.max_depth >= 0 && vertex >= st.max_depth) break;
+        const Vec3f p = ray.origin + ray.direction * ff.t;
+        const Vec3f wi_phase = -ray.direction;  // Mitsuba's wi: back along the path
+        const Spectrum<T> albedo = med.albedo_at<T>(params, p);
+        const HgParams<T> phase = med.phase<T>(params);
+        const HgParams<float> phase_detached{value_of(phase.g)};
+
+        if (has_emitters && observer.nee_may_contribute(vertex)) {
+          int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
+                                scene.emitter_count() - 1);
+          Vec2f u{sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))};
+          EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, p, u) : scene.environment.sample(u);
+          if (es.pdf > 0.f) {
+            const T f = hg_eval(phase, wi_phase, es.wi);
+            const float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
+                                                       : length(es.point - p) * (1.f - 1e-3f);
+            if (!observer.occluded(scene, vertex, p, es.wi, tmax)) {
+              TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
+              const T tr = shadow_transmittance<T>(scene, p, es.wi, tmax, medium, shadow_rng);
+              Spectrum<T> emitted = chosen < area_count
+                                        ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
+                                        : scene.environment.eval<T>(params, es.wi);
+              const float light_pdf = es.pdf * select_pdf;
+              const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase_detached, wi_phase, es.wi)) / light_pdf;
+              const Spectrum<T> contribution = beta * albedo * emitted * (f * tr * w_over_pdf);
+              radiance += contribution;
+              if constexpr (Observer::kActive) {
+                const EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
+                const Vec3f emitter_weight =
+                    value_of(beta) * value_of(albedo) * (value_of(f) * value_of(tr) * w_over_pdf);
+                observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight,
+                                    value_of(contribution), ShadowRef{p, es.wi, tmax, medium, sampler.key(), vertex});
+              }
+            }
+          }
+        }
+
+        Vec2f u{sampler.get(Dim::at(vertex, Dim::kBsdfU)), sampler.get(Dim::at(vertex, Dim::kBsdfV))};
+        const PhaseSample ps = hg_sample(phase_detached, wi_phase, u);
+        if (!(ps.pdf > 0.f)) break;
+        // p / pdf is 1 in value; on T it carries the derivative of the phase function.
+        beta = beta * albedo * (hg_eval(phase, wi_phase, ps.wo) / ps.pdf);
+        if constexpr (Observer::kActive)
+          observer.medium_vertex(med, p, wi_phase, ps.wo, value_of(albedo), radiance_so_far, value_of(radiance));
+        float q = 1.f;
+        if (st.rr_depth > 0 && vertex >= st.rr_depth) {
+          q = std::min(max_component(value_of(beta)), 0.95f);
+          if (!(sampler.get(Dim::at(vertex, Dim::kRoulette)) < q)) break;
+          beta = beta * (1.f / q);
+        }
+        ray = Ray{p, ps.wo};
+        mis_bsdf_pdf = ps.pdf;
+        travelled = 0.f;
+        ++vertex;
+        continue;
+      }
+    }
+
+    // Escaped: environment emission, MIS-weighted against environment sampling.
+    if (hit.mesh < 0) {
+      if (scene.environment.present && visible_emitter) {
+        float w =
+            mis_bsdf_pdf > 0.f ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction)) : 1.f;
+        Spectrum<T> contribution = beta * scene.environment.eval<T>(params, ray.direction) * w;
+        radiance += contribution;
+        if constexpr (Observer::kActive)
+          observer.emission({-1, {}, ray.direction}, value_of(beta) * w, value_of(contribution));
+      }
+      break;
+    }
+
+    const SurfacePoint sp = scene.surface_point(hit, ray);
+    const Mesh& mesh = scene.meshes[size_t(sp.mesh)];
+    const Material& material = scene.materials[size_t(mesh.material)];
+    const Vec3f wo_world = -ray.direction;
+
+    // A null surface: the ray continues unchanged, possibly into another medium.
+    if (material.is_null) {
+      if (++null_crossings > kMaxNullCrossings) break;
+      medium = scene.medium_after(mesh, ray.direction, sp.geometric_normal, medium);
+      const Vec3f origin = offset_origin(sp.p, sp.geometric_normal, ray.direction);
+      travelled += length(origin - ray.origin);
+      ray = Ray{origin, ray.direction};
+      continue;
+    }
+
+    // Hit an area emitter: its emission, MIS-weighted against light sampling.
+    if (mesh.emitter >= 0 && visible_emitter) {
+      const AreaEmitter& emitter = scene.area_emitters[size_t(mesh.emitter)];
+      float cos_shading = dot(sp.shading_normal, wo_world);
+      if (cos_shading > 0.f) {
+        float w = 1.f;
+        if (mis_bsdf_pdf > 0.f)
+          w = power_heuristic(mis_bsdf_pdf, select_pdf * emitter.pdf(travelled + hit.t,
+                                                                     std::abs(dot(sp.geometric_normal, wo_world))));
+        Spectrum<T> contribution = beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
+        radiance += contribution;
+        if constexpr (Observer::kActive)
+          observer.emission({mesh.emitter, sp.uv, {}}, value_of(beta) * w, value_of(contribution));
+      }
+    }
+
+    // Max depth: a further segment would exceed it.
+    if (st.max_depth >= 0 && vertex >= st.max_depth) break;
+
+    const BsdfValue<T> bsdf = material.at<T>(params, sp.uv);
+    const BsdfValue<float> bsdf_detached = bsdf.detached();
+    Vec3f normal = sp.shading_normal;
+    if (material.two_sided && dot(normal, wo_world) < 0.f) normal = -normal;
+    const Frame frame(normal);
+    const Vec3f wo = frame.to_local(wo_world);
+    const VertexRef vref{&material, &bsdf_detached, sp.uv, wo, vertex};
+
+    // Next-event estimation: one emitter chosen uniformly, one point on it.
+    if (has_emitters && observer.nee_may_contribute(vertex)) {
+      int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
+                            scene.emitter_count() - 1);
+      Vec2f u{sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))};
+      EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, sp.p, u) : scene.environment.sample(u);
+      if (es.pdf > 0.f) {
+        const Vec3f wi = frame.to_local(es.wi);
+        Spectrum<T> f = bsdf.eval(wo, wi);
+        if (!is_zero(value_of(f))) {
+          Vec3f origin = offset_origin(sp.p, sp.geometric_normal, es.wi);
+          float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
+                                               : length(es.point - origin) * (1.f - 1e-3f);
+          if (!observer.occluded(scene, vertex, origin, es.wi, tmax)) {
+            EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
+            Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
+                                                      : scene.environment.eval<T>(params, es.wi);
+            T tr = T(1.f);  // transmittance of the shadow ray through media
+            int shadow_medium = -1;
+            if (!scene.media.empty()) {
+              TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
+              shadow_medium = scene.medium_after(mesh, es.wi, sp.geometric_normal, medium);
+              tr = shadow_transmittance<T>(scene, origin, es.wi, tmax, shadow_medium, shadow_rng);
+            }
+            float light_pdf = es.pdf * select_pdf;
+            float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
+            Spectrum<T> contribution = beta * f * emitted * (tr * w_over_pdf);
+            radiance += contribution;
+            if constexpr (Observer::kActive) {
+              Vec3f b = value_of(beta) * (value_of(tr) * w_over_pdf);
+              observer.nee(vref, wi, eref, b * value_of(emitted), b * value_of(f), value_of(contribution));
+              if (!scene.media.empty())
+                observer.shadow(ShadowRef{origin, es.wi, tmax, shadow_medium, sampler.key(), vertex},
+                                value_of(contribution));
+            }
+          }
+        }
+      }
+    }
+
+    // BSDF sampling continues the path.
+    Vec2f u{sampler.get(Dim::at(vertex, Dim::kBsdfU)), sampler.get(Dim::at(vertex, Dim::kBsdfV))};
+    BsdfSample bs = bsdf_detached.sample(wo, sampler.get(Dim::at(vertex, Dim::kLobe)), u);
+    if (bs.pdf <= 0.f) break;
+    Spectrum<T> f = bsdf.eval(wo, bs.wi);
+    if (is_zero(value_of(f))) break;
+    const Vec3f beta_before = value_of(beta);
+    beta = beta * f * (1.f / bs.pdf);
+
+    // Russian roulette on the detached throughput (Mitsuba's rule: after the BSDF sample at
+    // surface vertex k ≥ rr_depth, continue with q = min(max β, 0.95)).
+    float q = 1.f;
+    if (st.rr_depth > 0 && vertex >= st.rr_depth) {
+      q = std::min(max_component(value_of(beta)), 0.95f);
+      if (!(sampler.get(Dim::at(vertex, Dim::kRoulette)) < q)) break;
+      beta = beta * (1.f / q);
+    }
+
+    const Vec3f wi_world = frame.to_world(bs.wi);
+    Ray next;
+    next.origin = offset_origin(sp.p, sp.geometric_normal, wi_world);
+    next.direction = wi_world;
+    if constexpr (Observer::kActive)
+      observer.scatter(vref, bs.wi, value_of(f), bs.pdf, q, beta_before, value_of(radiance), vertex, next);
+    medium = scene.medium_after(mesh, wi_world, sp.geometric_normal, medium);
+    ray = next;
+    mis_bsdf_pdf = bs.pdf;
+    travelled = 0.f;
+    ++vertex;
+  }
+  return radiance;
+}
+
+}  // namespace bl

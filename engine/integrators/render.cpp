@@ -1,0 +1,54 @@
+#include "engine/integrators/render.h"
+
+#include <tbb/parallel_for.h>
+
+#include <atomic>
+
+#include "engine/integrators/path.h"
+#include "engine/io/progress.h"
+
+namespace bl {
+
+void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn) {
+  constexpr int kTile = 16;
+  const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
+  tbb::parallel_for(0, tiles_x * tiles_y, [&](int t) {
+    int x0 = (t % tiles_x) * kTile, y0 = (t / tiles_x) * kTile;
+    tile_fn(x0, y0, std::min(x0 + kTile, width), std::min(y0 + kTile, height));
+  });
+}
+
+Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
+  const Camera& cam = scene.cameras.at(size_t(o.camera));
+  Image image(cam.width, cam.height, 3);
+  Progress progress("render", uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
+  std::atomic<uint64_t> rays{0};
+  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
+    const uint64_t rays_before = Geometry::thread_ray_count();
+    NoObserver none;
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x) {
+        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+        Vec3d sum(0.0);  // double: the mean of many samples does not drift with spp
+        for (int s = 0; s < o.spp; ++s) {
+          PathSampler sampler(o.seed, pixel, uint64_t(s));
+          PathStart start{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
+                          cam.medium};
+          sum += Vec3d(trace_path<float>(scene, start, sampler, none));
+        }
+        const Vec3f mean(sum / double(o.spp));
+        for (int c = 0; c < 3; ++c) image.at(x, y, c) = mean[c];
+      }
+    rays += Geometry::thread_ray_count() - rays_before;
+    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
+  });
+  progress.finish();
+  if (stats) {
+    stats->seconds = progress.elapsed();
+    stats->samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
+    stats->rays = rays.load();
+  }
+  return image;
+}
+
+}  // namespace bl

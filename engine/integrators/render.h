@@ -1,0 +1,45 @@
+#pragma once
+// Image-level passes: the primal render and the adjoint (gradient) pass.
+#include <cstdint>
+#include <functional>
+
+#include "engine/io/image_io.h"
+#include "engine/scene/scene.h"
+
+namespace bl {
+
+struct PassOptions {
+  int camera = 0;
+  int spp = 16;
+  uint64_t seed = 0;
+  bool progress = true;
+};
+
+struct PassStats {
+  double seconds = 0;
+  uint64_t samples = 0;
+  uint64_t rays = 0;
+};
+
+// Primal render: box filter, pixel value = mean of its samples. Bitwise identical for any
+// thread count: each pixel's samples are summed in a fixed order by a single task.
+Image render(const Scene& scene, const PassOptions& options, PassStats* stats = nullptr);
+
+enum class AdjointMethod { Prb, Rb };
+
+// Supplies δI for a pixel given its freshly rendered value (a per-pixel loss gradient, or a
+// lookup into a given adjoint image).
+using PixelAdjoint = std::function<Vec3f(size_t pixel, const Vec3f& value)>;
+
+// The adjoint pass. For every pixel it renders the pixel's samples (needed by path replay, and
+// giving the pixel's value to `adjoint`), then transports δI = adjoint(pixel, value) back into
+// the scene and accumulates parameter gradients into the ParamStore's grad buffers (which the
+// caller zeroes; see ParamStore::require_grad). Memory: per-thread state only.
+// `image_out`, when given, receives the pixel values rendered on the way.
+PassStats backward(Scene& scene, const PassOptions& options, AdjointMethod method, const PixelAdjoint& adjoint,
+                   Image* image_out = nullptr);
+
+// Runs `tile_fn(x0, y0, x1, y1)` over 16×16 tiles in parallel (TBB).
+void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn);
+
+}  // namespace bl

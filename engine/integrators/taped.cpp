@@ -1,0 +1,167 @@
+#include "engine/integrators/taped.h"
+
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for_each.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/path.h"
+#include "engine/io/progress.h"
+#include "engine/core/tape.h"
+
+namespace bl {
+
+size_t physical_memory_bytes() { return size_t(sysconf(_SC_PHYS_PAGES)) * size_t(sysconf(_SC_PAGE_SIZE)); }
+
+size_t parse_memory_size(const std::string& text) {
+  char* end = nullptr;
+  double v = std::strtod(text.c_str(), &end);
+  std::string unit = end ? std::string(end) : "";
+  for (auto& c : unit) c = char(std::toupper(c));
+  double scale = unit.empty() || unit == "B"   ? 1.0
+                 : unit == "K" || unit == "KB" ? 1e3
+                 : unit == "KIB"               ? 1024.0
+                 : unit == "M" || unit == "MB" ? 1e6
+                 : unit == "MIB"               ? 1048576.0
+                 : unit == "G" || unit == "GB" ? 1e9
+                 : unit == "GIB"               ? 1073741824.0
+                                               : -1;
+  if (end == text.c_str() || scale < 0 || !(v > 0) || !std::isfinite(v))
+    throw InputError("--memory-budget '" + text + "': expected a size such as 512MB or 4GB");
+  // Converting a double beyond 2^64 to size_t is undefined; no machine has 2^62 bytes anyway.
+  constexpr double kMaxBudget = double(uint64_t(1) << 62);
+  if (v * scale > kMaxBudget)
+    throw InputError("--memory-budget '" + text + "': " + std::to_string(v * scale) + " bytes exceeds the limit of " +
+                     std::to_string(uint64_t(1) << 62));
+  return size_t(v * scale);
+}
+
+namespace {
+
+// Bytes the tape costs per entry: the entry itself plus the adjoint slot of the reverse sweep.
+constexpr size_t kBytesPerEntry = sizeof(TapeEntry) + sizeof(float);
+
+std::string megabytes(double bytes) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.0f MB", bytes / 1e6);
+  return buf;
+}
+
+struct PixelOutput {
+  Tape* tape = nullptr;
+  uint32_t index[3] = {Tape::kNone, Tape::kNone, Tape::kNone};
+};
+
+}  // namespace
+
+GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
+  if (rq.adjoint_seed != rq.pass.seed)
+    throw InputError("--method taped records one render and differentiates it: --adjoint-seed must equal --seed");
+  const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
+  const size_t pixels = size_t(cam.width) * size_t(cam.height);
+  const size_t budget = rq.memory_budget ? rq.memory_budget : size_t(0.8 * double(physical_memory_bytes()));
+  GradientResult result;
+  result.image = Image(cam.width, cam.height, 3);
+  std::vector<PixelOutput> outputs(pixels);
+  tbb::enumerable_thread_specific<Tape> tapes;
+  std::atomic<uint64_t> entries{0}, pixels_done{0};
+  std::atomic<bool> over_budget{false};
+  std::atomic<double> projected_bytes{0};
+  std::atomic<uint64_t> trigger_pixels{0};
+
+  // 1. Record the whole render.
+  Progress progress("taped record", uint64_t(pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
+  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
+    if (over_budget.load(std::memory_order_relaxed)) return;
+    Tape& tape = tapes.local();
+    current_tape = &tape;
+    const size_t before = tape.size();
+    NoObserver none;
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x) {
+        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+        Spectrum<Var> sum(Var(0.f));
+        for (int s = 0; s < rq.pass.spp; ++s) {
+          PathSampler sampler(rq.pass.seed, pixel, uint64_t(s));
+          PathStart start{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
+                          cam.medium};
+          sum += trace_path<Var>(scene, start, sampler, none);
+        }
+        Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
+        PixelOutput& out = outputs[pixel];
+        out.tape = &tape;
+        for (int c = 0; c < 3; ++c) {
+          result.image.at(x, y, c) = mean[c].v;
+          out.index[c] = mean[c].index;
+        }
+      }
+    // Memory guard: project the final size from the pixels recorded so far, and stop as soon as
+    // the projection or the actual size passes the budget.
+    uint64_t total = entries += tape.size() - before;
+    uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
+    double projected = double(total) * double(kBytesPerEntry) * double(pixels) / double(done);
+    if ((done * 20 >= pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget)) {
+      // Keep the projection that tripped the guard (other tiles may project less meanwhile).
+      bool expected = false;
+      if (over_budget.compare_exchange_strong(expected, true))
+        projected_bytes.store(std::max(projected, double(total * kBytesPerEntry))), trigger_pixels.store(done);
+    }
+    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
+    current_tape = nullptr;
+  });
+  // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
+  if (over_budget)
+    throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
+                     " (from the " + std::to_string(100 * trigger_pixels.load() / pixels) +
+                     "% of pixels recorded), more than the memory budget of " + megabytes(double(budget)) +
+                     " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
+  progress.finish();
+  result.primal_seconds = progress.elapsed();
+
+  // 2. Loss (or functional) on the finished image, and its image-space adjoint.
+  Image adjoint;
+  if (rq.adjoint_image) {
+    adjoint = *rq.adjoint_image;
+    result.loss = 0;
+    for (size_t i = 0; i < adjoint.data.size(); ++i)
+      result.loss += double(adjoint.data[i]) * double(result.image.data[i]);
+  } else {
+    LossResult lr = compute_loss(rq.loss, result.image, *rq.target);
+    result.loss = lr.value;
+    adjoint = std::move(lr.adjoint);
+  }
+
+  // 3. One reverse sweep per thread tape.
+  auto t0 = std::chrono::steady_clock::now();
+  ParamStore& store = scene.params;
+  std::vector<size_t> offsets;
+  for (const auto& p : store.all()) offsets.push_back(p.tape_offset);
+  GradientSink sink(store);
+  std::vector<Tape*> all_tapes;
+  for (auto& t : tapes) all_tapes.push_back(&t);
+  tbb::parallel_for_each(all_tapes.begin(), all_tapes.end(), [&](Tape* tape) {
+    std::vector<float> adj(tape->size(), 0.f);
+    for (size_t p = 0; p < pixels; ++p)
+      if (outputs[p].tape == tape)
+        for (int c = 0; c < 3; ++c)
+          if (outputs[p].index[c] != Tape::kNone) adj[outputs[p].index[c]] += adjoint.data[p * 3 + size_t(c)];
+    GradientAccumulator& grads = sink.local();
+    reverse_sweep(*tape, adj, [&](uint32_t flat, float g) {
+      size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(flat)) - offsets.begin()) - 1;
+      grads.add(int(handle), size_t(flat) - offsets[handle], g);
+    });
+  });
+  sink.reduce();
+  result.adjoint_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  result.tape_entries = entries.load();
+  result.tape_bytes = result.tape_entries * sizeof(TapeEntry);
+  return result;
+}
+
+}  // namespace bl

@@ -1,0 +1,17 @@
+#pragma once
+// Taped reverse-mode AD of the whole render: the baseline prb is measured against, and a test
+// oracle for it. The path loop of engine/integrators/path.h runs on the tape scalar (engine/core/tape.h); every
+// parameter-dependent operation of every sample is recorded, the loss is computed from the
+// finished image, and one reverse sweep per thread tape writes the gradients.
+#include "engine/integrators/gradient.h"
+
+namespace bl {
+
+GradientResult taped_gradient(Scene& scene, const GradientRequest& request);
+
+// Physical memory in bytes (for the default budget: 80% of it).
+size_t physical_memory_bytes();
+// Parses "512MB", "4GB", "1.5G", "100000" (bytes). Throws InputError.
+size_t parse_memory_size(const std::string& text);
+
+}  // namespace bl

@@ -1,0 +1,46 @@
+#pragma once
+// Images in and out through OpenImageIO. Pixel data is row-major, row 0 on top (the first
+// scanline), interleaved channels, linear float. Files are written atomically: to a temporary
+// name in the same folder, then renamed, so a killed run never leaves a truncated file.
+#include <string>
+#include <vector>
+
+namespace bl {
+
+struct Image {
+  int width = 0, height = 0, channels = 3;
+  std::vector<float> data;
+  bool from_float_file = false;  // the file stored floats (EXR, HDR, float TIFF)
+
+  Image() = default;
+  Image(int w, int h, int c = 3) : width(w), height(h), channels(c), data(size_t(w) * size_t(h) * size_t(c), 0.f) {}
+  float& at(int x, int y, int c) {
+    return data[(size_t(y) * size_t(width) + size_t(x)) * size_t(channels) + size_t(c)];
+  }
+  float at(int x, int y, int c) const {
+    return data[(size_t(y) * size_t(width) + size_t(x)) * size_t(channels) + size_t(c)];
+  }
+  size_t pixel_count() const { return size_t(width) * size_t(height); }
+};
+
+// Reads any format OpenImageIO knows. 8/16-bit files are decoded from sRGB to linear when
+// `decode_srgb`; float files are returned as stored. Errors (missing, corrupt, NaN/inf) throw
+// InputError naming the file.
+Image read_image(const std::string& path, bool decode_srgb);
+Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_image without path-error mapping
+// Throws InputError unless the extension is one write_image supports (check before long work).
+void check_output_format(const std::string& path);
+// Writes by extension: .exr as float RGB(A), .png/.jpg as sRGB 8-bit clamped. Atomic.
+void write_image(const std::string& path, const Image& image);
+// Writes `text` to `path` atomically (temp file + rename).
+void write_text_atomic(const std::string& path, const std::string& text);
+// The same for raw bytes, written straight from `data` (no copy).
+void write_bytes_atomic(const std::string& path, const void* data, size_t size);
+// Deletes, under `dir` (recursively), the temporaries that write_image/write_text_atomic of
+// another process left behind when it was killed before its rename. Returns how many.
+int remove_stale_temporaries(const std::string& dir);
+
+float srgb_to_linear(float v);
+float linear_to_srgb(float v);
+
+}  // namespace bl

@@ -1,0 +1,172 @@
+#pragma once
+// Strict JSON reading shared by the scene loader and the optimizer config: every key must be
+// consumed (unknown keys are reported with their JSON pointer), values are type- and
+// range-checked, and errors are one line "<file>: <pointer>: <problem>".
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <set>
+#include <sstream>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/core/math.h"
+
+namespace bl {
+
+using nlohmann::json;
+
+// A JSON object being read: remembers which keys were consumed so leftovers can be reported.
+class Node {
+ public:
+  // A node with no keys of its own, for reporting errors at `pointer` (it must not refer to a
+  // temporary: Node keeps a reference to its JSON).
+  static Node at_pointer(std::string pointer, const std::string& file) {
+    static const json empty = json::object();
+    return Node(empty, std::move(pointer), file);
+  }
+  Node(const json& j, std::string pointer, const std::string& file) : j_(j), ptr_(std::move(pointer)), file_(file) {
+    if (!j_.is_object()) fail("expected an object");
+  }
+  [[noreturn]] void fail(const std::string& msg) const {
+    throw file_error(file_, (ptr_.empty() ? "/" : ptr_) + ": " + msg);
+  }
+  [[noreturn]] void fail_at(const std::string& key, const std::string& msg) const {
+    throw file_error(file_, ptr_ + "/" + key + ": " + msg);
+  }
+  bool has(const std::string& key) const { return j_.contains(key); }
+  const json& at(const std::string& key) {
+    if (!j_.contains(key)) fail("missing required key '" + key + "'");
+    used_.insert(key);
+    return j_.at(key);
+  }
+  const json* find(const std::string& key) {
+    if (!j_.contains(key)) return nullptr;
+    used_.insert(key);
+    return &j_.at(key);
+  }
+  Node child(const std::string& key) { return Node(at(key), ptr_ + "/" + key, file_); }
+  // The whole object, for iterating over free-form keys (mark each one with mark_used).
+  const json& at_all() {
+    for (auto it = j_.begin(); it != j_.end(); ++it) used_.insert(it.key());
+    return j_;
+  }
+  void mark_used(const std::string& key) { used_.insert(key); }
+  std::string pointer(const std::string& key) const { return ptr_ + "/" + key; }
+  const std::string& file() const { return file_; }
+  // Reports the first key nobody read.
+  void finish() const {
+    for (auto it = j_.begin(); it != j_.end(); ++it)
+      if (!used_.count(it.key())) fail("unknown key '" + it.key() + "'");
+  }
+
+  double number(const std::string& key, double fallback, double lo = -1e30, double hi = 1e30) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    return checked_number(*v, key, lo, hi);
+  }
+  double number_required(const std::string& key, double lo = -1e30, double hi = 1e30) {
+    return checked_number(at(key), key, lo, hi);
+  }
+  double checked_number(const json& v, const std::string& key, double lo, double hi) const {
+    if (!v.is_number()) fail_at(key, "expected a number");
+    double d = v.get<double>();
+    if (!std::isfinite(d)) fail_at(key, "not a finite number");
+    if (d < lo || d > hi) {
+      std::ostringstream s;
+      s << "value " << d << " outside the valid range [" << lo << ", " << hi << "]";
+      fail_at(key, s.str());
+    }
+    return d;
+  }
+  // A whole number in [lo, hi]; 2.5 is an error, not 2.
+  long integer(const std::string& key, long fallback, long lo, long hi) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    double d = checked_number(*v, key, double(lo), double(hi));
+    if (d != std::floor(d)) fail_at(key, "expected a whole number");
+    return long(d);
+  }
+  bool boolean(const std::string& key, bool fallback) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    if (!v->is_boolean()) fail_at(key, "expected true or false");
+    return v->get<bool>();
+  }
+  std::string string(const std::string& key) {
+    const json& v = at(key);
+    if (!v.is_string()) fail_at(key, "expected a string");
+    return v.get<std::string>();
+  }
+  std::string string(const std::string& key, const std::string& fallback) { return has(key) ? string(key) : fallback; }
+  Vec3f vec3(const std::string& key) { return vec3_of(at(key), pointer(key)); }
+  Vec3f vec3(const std::string& key, Vec3f fallback) { return has(key) ? vec3(key) : fallback; }
+  Vec3f vec3_of(const json& v, const std::string& where) const {
+    if (!v.is_array() || v.size() != 3) throw file_error(file_, where + ": expected [x, y, z]");
+    Vec3f r;
+    for (int i = 0; i < 3; ++i) {
+      if (!v[size_t(i)].is_number()) throw file_error(file_, where + ": expected numbers");
+      r[i] = v[size_t(i)].get<float>();
+      if (!std::isfinite(r[i])) throw file_error(file_, where + ": not a finite number");
+    }
+    return r;
+  }
+
+ private:
+  const json& j_;
+  std::string ptr_;
+  const std::string& file_;
+  std::set<std::string> used_;
+};
+
+inline std::string line_col(const std::string& text, size_t byte) {
+  size_t line = 1, col = 1;
+  for (size_t i = 0; i < std::min(byte, text.size()); ++i) {
+    if (text[i] == '\n') {
+      ++line;
+      col = 1;
+    } else {
+      ++col;
+    }
+  }
+  return std::to_string(line) + ":" + std::to_string(col > 1 ? col - 1 : 1);
+}
+
+// The whole of a JSON file (scene, optimizer config): a regular file within limits::kFileBytes.
+// A FIFO would block forever and /dev/zero would never end.
+inline std::string read_json_file(const std::string& path) {
+  namespace fs = std::filesystem;
+  require_input_file(path);
+  limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw file_error(path, "cannot open");
+  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+}
+
+// Parses `text` (the contents of `file`); syntax errors report line:column.
+inline json parse_json_text(const std::string& text, const std::string& file) {
+  // nlohmann's parser and every copy of a json value recurse: bound the depth first.
+  limits::check_json_depth(file, text);
+  try {
+    return json::parse(text);
+  } catch (const json::parse_error& e) {
+    std::string msg = e.what();
+    if (auto p = msg.find("parse error"); p != std::string::npos) msg = msg.substr(p);
+    throw file_error(file, line_col(text, e.byte) + ": malformed JSON (" + msg + ")");
+  } catch (const json::exception& e) {
+    // e.g. a number too large for a double ("1e999")
+    std::string msg = e.what();
+    if (auto p = msg.find("] "); p != std::string::npos) msg = msg.substr(p + 2);
+    throw file_error(file, "invalid JSON (" + msg + ")");
+  }
+}
+
+struct Camera;
+// Reads a camera object (scene format, scenes/README.md); used by scenes and optimizer configs.
+Camera parse_camera(Node& n, const std::string& default_name);
+
+}  // namespace bl

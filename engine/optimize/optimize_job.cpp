@@ -1,0 +1,849 @@
+// `backlight optimize CONFIG`: multi-view gradient descent on scene parameters. The config format
+// is documented in the README ("Optimization config"); errors name the config file and the JSON
+// pointer. Every output is written atomically; checkpoints are whole directories swapped in by
+// rename, so a killed run resumes from the last complete one and reaches the same parameters.
+#include <tbb/global_control.h>
+
+#include <chrono>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <optional>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/core/sampler.h"
+#include "engine/integrators/gradient.h"
+#include "engine/io/grid_view.h"
+#include "engine/io/json_node.h"
+#include "engine/io/plot.h"
+#include "engine/io/progress.h"
+#include "engine/optimize/optimizer.h"
+#include "engine/optimize/resample.h"
+#include "engine/scene/scene_load.h"
+#include "engine/scene/volume_io.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+volatile std::sig_atomic_t interrupted = 0;
+void on_sigint(int) { interrupted = 1; }
+
+struct Stage {
+  int until = 0;  // iterations [previous until, until) run at this resolution
+  int width = 0, height = 0;
+  int depth = 0;  // > 0: a volume grid stage [X, Y, Z] = [width, height, depth]
+  double lr = 0;  // > 0: the learning rate during this stage (decay still applies); 0: the parameter's
+};
+
+struct OptimizedParam {
+  std::string name;
+  int handle = -1;
+  Adam adam;
+  double lr = 0;  // the configured learning rate (stages may override it)
+  std::vector<Stage> stages;
+  json init;  // null: keep the scene's value
+  std::optional<Param> ground_truth;
+  double tv_weight = 0;  // total-variation regularizer (grids and images)
+};
+
+struct Config {
+  std::string file;
+  std::string scene;
+  std::vector<std::string> scene_overrides;
+  std::vector<OptimizedParam> params;
+  std::vector<std::string> views;                   // camera names or indices
+  std::vector<Camera> extra_cameras;                // camera poses given in the config
+  std::map<std::string, std::string> target_files;  // camera name → image
+  std::vector<std::string> reference_overrides;     // "NAME=VALUE" for rendering targets
+  int reference_spp = 64;
+  int views_per_iteration = 0;  // 0 = all
+  LossType loss = LossType::L2;
+  int spp = 4, adjoint_spp = 4;
+  bool decorrelate = true;
+  int iterations = 100;
+  uint64_t seed = 0;
+  std::string output;
+  int checkpoint_every = 10, snapshot_every = 25;
+  int width = 0, height = 0;  // render resolution override (0 = the cameras')
+  int rmse_width = 0, rmse_height = 0;
+};
+
+std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
+  if (v.is_string()) return name + "=" + (dir / v.get<std::string>()).lexically_normal().string();
+  if (v.is_number()) return name + "=" + std::to_string(v.get<double>());
+  if (v.is_array()) {
+    std::string s = name + "=";
+    for (size_t i = 0; i < v.size(); ++i) {
+      if (!v[i].is_number()) n.fail_at(name, "expected numbers");
+      s += (i ? "," : "") + std::to_string(v[i].get<double>());
+    }
+    return s;
+  }
+  n.fail_at(name, "expected a file name, a number or a list of numbers");
+}
+
+Config parse_config(const std::string& path) {
+  const std::string text = read_json_file(path);
+  json root = parse_json_text(text, path);
+  Config c;
+  c.file = path;
+  const fs::path dir = fs::path(path).parent_path();
+  Node n(root, "", c.file);
+  c.scene = (dir / n.string("scene")).lexically_normal().string();
+  if (n.has("set")) {
+    Node s = n.child("set");
+    for (auto it = s.at_all().begin(); it != s.at_all().end(); ++it)
+      c.scene_overrides.push_back(override_string(it.key(), it.value(), s, dir));
+  }
+  c.output = (dir / n.string("output")).lexically_normal().string();
+  c.iterations = int(n.number("iterations", 100, 1, 1e7));
+  c.seed = uint64_t(n.number("seed", 0, 0, 4294967295.0));
+  c.spp = int(n.integer("spp", 4, 1, long(limits::kSpp)));
+  c.adjoint_spp = int(n.integer("adjoint_spp", c.spp, 1, long(limits::kSpp)));
+  c.decorrelate = n.boolean("decorrelate", true);
+  c.loss = n.has("loss") ? parse_loss(n.string("loss")) : LossType::L2;
+  c.checkpoint_every = int(n.number("checkpoint_every", 10, 1, 1e7));
+  c.snapshot_every = int(n.number("snapshot_every", 25, 1, 1e7));
+  c.views_per_iteration = int(n.number("views_per_iteration", 0, 0, 1e4));
+  auto read_size = [&](const char* key, int& w, int& h) {
+    if (const json* r = n.find(key)) {
+      if (!r->is_array() || r->size() != 2 || !(*r)[0].is_number_integer() || !(*r)[1].is_number_integer() ||
+          (*r)[0].get<int64_t>() < 1 || (*r)[1].get<int64_t>() < 1)
+        n.fail_at(key, "expected [width, height]");
+      limits::check_image_size(c.file + ": /" + key, (*r)[0].get<uint64_t>(), (*r)[1].get<uint64_t>());
+      w = (*r)[0].get<int>(), h = (*r)[1].get<int>();
+    }
+  };
+  read_size("resolution", c.width, c.height);
+  read_size("rmse_resolution", c.rmse_width, c.rmse_height);
+
+  Node views = n.child("views");
+  if (views.has("ring")) {
+    // A ring of cameras around a target (multi-view volume setups): `count` poses at equal angles,
+    // `radius` from the target's vertical axis, at `height` above it, all looking at it.
+    Node r = views.child("ring");
+    const int count = int(r.integer("count", 8, 1, 1024));
+    const double radius = r.number_required("radius", 1e-6, 1e9), height = r.number("height", 0.0, -1e9, 1e9);
+    const Vec3f target = r.vec3("target", {0, 0, 0});
+    const double fov = r.number("fov", 40.0, 1e-3, 179.9), phase = r.number("angle_offset", 0.0, -360.0, 360.0);
+    r.finish();
+    for (int k = 0; k < count; ++k) {
+      const double a = (phase + 360.0 * k / count) * kPi / 180.0;
+      Camera cam;
+      cam.name = "ring" + std::to_string(k);
+      cam.target = target;
+      cam.origin = target + Vec3f{float(radius * std::sin(a)), float(height), float(radius * std::cos(a))};
+      cam.fov_degrees = float(fov);
+      cam.update();
+      c.extra_cameras.push_back(cam);
+      c.views.push_back(cam.name);
+    }
+  }
+  const json* cams_ptr = views.find("cameras");
+  static const json no_cameras = json::array();
+  const json& cams = cams_ptr ? *cams_ptr : no_cameras;
+  if (!cams.is_array() || (cams.empty() && c.views.empty()))
+    views.fail_at("cameras", "expected a non-empty list of camera names or indices (or a \"ring\")");
+  for (size_t i = 0; i < cams.size(); ++i) {
+    if (cams[i].is_object()) {
+      // An extra pose, in the scene format's camera syntax.
+      Node cn(cams[i], views.pointer("cameras") + "/" + std::to_string(i), c.file);
+      c.extra_cameras.push_back(parse_camera(cn, "view" + std::to_string(i)));
+      c.views.push_back(c.extra_cameras.back().name);
+    } else if (cams[i].is_string() || cams[i].is_number_integer()) {
+      c.views.push_back(cams[i].is_string() ? cams[i].get<std::string>() : cams[i].dump());
+    } else {
+      views.fail_at("cameras/" + std::to_string(i), "expected a camera name, an index or a camera object");
+    }
+  }
+  if (views.has("targets")) {
+    Node t = views.child("targets");
+    for (auto it = t.at_all().begin(); it != t.at_all().end(); ++it) {
+      if (!it.value().is_string()) t.fail_at(it.key(), "expected an image file name");
+      c.target_files[it.key()] = (dir / it.value().get<std::string>()).lexically_normal().string();
+    }
+  }
+  if (views.has("reference")) {
+    Node r = views.child("reference");
+    if (r.has("set")) {
+      Node s = r.child("set");
+      for (auto it = s.at_all().begin(); it != s.at_all().end(); ++it)
+        c.reference_overrides.push_back(override_string(it.key(), it.value(), s, dir));
+    }
+    c.reference_spp = int(r.integer("spp", 64, 1, long(limits::kSpp)));
+    r.finish();
+  }
+  if (c.target_files.empty() && c.reference_overrides.empty())
+    views.fail("give \"targets\" (camera → image) or a \"reference\" scene variant to render them from");
+  views.finish();
+
+  Node params = n.child("parameters");
+  if (params.at_all().empty()) params.fail("no parameters to optimize");
+  for (auto it = params.at_all().begin(); it != params.at_all().end(); ++it) {
+    Node p(it.value(), params.pointer(it.key()), c.file);
+    params.mark_used(it.key());
+    OptimizedParam op;
+    op.name = it.key();
+    AdamSettings a;
+    a.learning_rate = op.lr = p.number_required("lr", 0, 1e6);
+    if (const json* b = p.find("bounds")) {
+      if (!b->is_array() || b->size() != 2 || !(*b)[0].is_number() || !(*b)[1].is_number() ||
+          (*b)[0].get<double>() > (*b)[1].get<double>())
+        p.fail_at("bounds", "expected [lower, upper] with lower ≤ upper");
+      a.lower = (*b)[0].get<float>(), a.upper = (*b)[1].get<float>();
+    }
+    if (p.has("decay")) {
+      Node d = p.child("decay");
+      a.decay = d.string("type");
+      if (a.decay != "exponential" && a.decay != "step") d.fail_at("type", "expected \"exponential\" or \"step\"");
+      a.decay_rate = d.number_required("rate", 0, 1);
+      a.decay_every = int(d.number("every", a.decay == "step" ? 50 : 0, 0, 1e7));
+      d.finish();
+    }
+    op.adam = Adam(a);
+    if (const json* init = p.find("init")) op.init = *init;
+    if (const json* st = p.find("schedule")) {
+      if (!st->is_array()) p.fail_at("schedule", "expected a list of {\"until\", \"resolution\"}");
+      for (size_t i = 0; i < st->size(); ++i) {
+        Node s((*st)[i], p.pointer("schedule") + "/" + std::to_string(i), c.file);
+        Stage stage;
+        stage.until = int(s.number_required("until", 0, 1e7));
+        const json& r = s.at("resolution");
+        bool ok = r.is_array() && (r.size() == 2 || r.size() == 3);
+        for (size_t k = 0; ok && k < r.size(); ++k)
+          ok = r[k].is_number_integer() && r[k].get<int64_t>() >= 1 && r[k].get<uint64_t>() <= limits::kImageSide;
+        if (!ok) s.fail_at("resolution", "expected [width, height] (images) or [x, y, z] (grids) of positive integers");
+        const std::string where = c.file + ": " + p.pointer("schedule") + "/" + std::to_string(i) + "/resolution";
+        if (r.size() == 2) {
+          limits::check_image_size(where, r[0].get<uint64_t>(), r[1].get<uint64_t>());
+        } else {
+          limits::checked_product(where, "voxel count",
+                                  {r[0].get<uint64_t>(), r[1].get<uint64_t>(), r[2].get<uint64_t>()},
+                                  limits::kGridVoxels);
+          stage.depth = r[2].get<int>();
+        }
+        stage.width = r[0].get<int>(), stage.height = r[1].get<int>();
+        if (s.has("lr")) stage.lr = s.number_required("lr", 1e-30, 1e6);
+        if (!op.stages.empty() && stage.until <= op.stages.back().until)
+          s.fail_at("until", "stages must be increasing");
+        s.finish();
+        op.stages.push_back(stage);
+      }
+    }
+    if (p.has("regularizer")) {
+      Node r = p.child("regularizer");
+      const std::string type = r.string("type");
+      if (type != "tv") r.fail_at("type", "unknown regularizer '" + type + "' (expected \"tv\")");
+      op.tv_weight = r.number_required("weight", 0, 1e12);
+      r.finish();
+    }
+    p.finish();
+    c.params.push_back(std::move(op));
+  }
+  n.finish();
+  return c;
+}
+
+uint64_t iteration_seed(uint64_t seed, int iteration, int view, int pass) {
+  return mix64(mix64(seed ^ 0x6f7074696d697a65ull) + uint64_t(iteration) * 0x9e3779b97f4a7c15ull +
+               uint64_t(view) * 0xd1b54a32d192ed03ull + uint64_t(pass)) &
+         0xffffffffull;
+}
+
+bool is_grid(const Param& p) { return p.shape.size() == 4; }
+
+// Whether a parameter already has a stage's resolution.
+bool has_resolution(const Param& p, const Stage& s) {
+  if (is_grid(p)) return s.depth == 0 || (p.shape[2] == s.width && p.shape[1] == s.height && p.shape[0] == s.depth);
+  return !p.is_image() || s.depth > 0 || (p.width() == s.width && p.height() == s.height);
+}
+
+// Sets an image or grid parameter to a stage's resolution, resampling its values (images take
+// [w, h] stages, grids [x, y, z]; other combinations leave the parameter alone).
+void resize_param(Param& p, const Stage& s) {
+  if (has_resolution(p, s)) return;
+  if (is_grid(p)) {
+    const int c = p.shape[3];
+    p.value = resample_grid(p.value, p.shape[2], p.shape[1], p.shape[0], c, s.width, s.height, s.depth);
+    p.shape = {s.depth, s.height, s.width, c};
+  } else {
+    p.value = resample(p.value, p.width(), p.height(), p.channels(), s.width, s.height);
+    p.shape = {s.height, s.width, p.channels()};
+  }
+  p.grad.assign(p.value.size(), 0.f);
+}
+
+// Adds weight · ∂TV/∂θ to the gradient, TV = mean over cells of sqrt(|∇θ|² + ε²) with forward
+// differences in every direction of the image or grid (per channel), and returns weight · TV.
+double add_total_variation(Param& p, double weight) {
+  if (weight <= 0 || (!p.is_image() && !is_grid(p))) return 0;
+  const int c = p.shape.back();
+  const int nx = is_grid(p) ? p.shape[2] : p.shape[1], ny = is_grid(p) ? p.shape[1] : p.shape[0],
+            nz = is_grid(p) ? p.shape[0] : 1;
+  const double eps2 = 1e-6, cells = double(nx) * ny * nz * c;
+  auto at = [&](int x, int y, int z, int k) {
+    return ((size_t(z) * size_t(ny) + size_t(y)) * size_t(nx) + size_t(x)) * size_t(c) + size_t(k);
+  };
+  double tv = 0;
+  for (int z = 0; z < nz; ++z)
+    for (int y = 0; y < ny; ++y)
+      for (int x = 0; x < nx; ++x)
+        for (int k = 0; k < c; ++k) {
+          const size_t i = at(x, y, z, k);
+          const size_t nbr[3] = {at(std::min(x + 1, nx - 1), y, z, k), at(x, std::min(y + 1, ny - 1), z, k),
+                                 at(x, y, std::min(z + 1, nz - 1), k)};
+          double d[3], sum = eps2;
+          for (int a = 0; a < 3; ++a) {
+            d[a] = double(p.value[nbr[a]]) - p.value[i];
+            sum += d[a] * d[a];
+          }
+          const double len = std::sqrt(sum);
+          tv += len;
+          const double scale = weight / (cells * len);
+          for (int a = 0; a < 3; ++a) {
+            p.grad[nbr[a]] += float(scale * d[a]);
+            p.grad[i] -= float(scale * d[a]);
+          }
+        }
+  return weight * tv / cells;
+}
+
+// Root-mean-square difference of two parameters after resampling both to (w, h) (images) or to
+// the second one's size (grids).
+double rmse(const Param& a, const Param& b, int w, int h) {
+  std::vector<float> x = a.value, y = b.value;
+  if (is_grid(a) && is_grid(b)) {
+    x = resample_grid(a.value, a.shape[2], a.shape[1], a.shape[0], a.shape[3], b.shape[2], b.shape[1], b.shape[0]);
+  } else if (a.is_image()) {
+    x = resample(a.value, a.width(), a.height(), a.channels(), w ? w : b.width(), h ? h : b.height());
+    y = resample(b.value, b.width(), b.height(), b.channels(), w ? w : b.width(), h ? h : b.height());
+  }
+  double s = 0;
+  for (size_t i = 0; i < x.size(); ++i) s += (double(x[i]) - y[i]) * (double(x[i]) - y[i]);
+  return std::sqrt(s / double(std::max<size_t>(1, x.size())));
+}
+
+// A grid parameter as a .vol grid in the unit box (the medium's box is the scene's business).
+// A grid parameter's dimensions in the unit box (values stay in the parameter: grids are large).
+VolumeGrid grid_of(const Param& p) {
+  VolumeGrid g;
+  g.z = p.shape[0], g.y = p.shape[1], g.x = p.shape[2], g.channels = p.shape[3];
+  return g;
+}
+GridView view_of(const Param& p) { return {&p.value, p.shape[2], p.shape[1], p.shape[0], p.shape[3]}; }
+
+Image param_image(const Param& p) {
+  Image img(p.width(), p.height(), p.channels() == 1 ? 1 : 3);
+  img.data = p.value;
+  return img;
+}
+
+void write_floats(const std::string& path, const std::vector<float>& v) {
+  write_bytes_atomic(path, v.data(), v.size() * sizeof(float));
+}
+
+std::vector<float> read_floats(const std::string& path, size_t count) {
+  // The size is checked against the file before allocating: a checkpoint's recorded shape is input.
+  std::error_code ec;
+  const auto bytes = fs::file_size(path, ec);
+  if (ec || count > bytes / sizeof(float) || bytes != count * sizeof(float))
+    throw file_error(path, "checkpoint file is truncated or has the wrong size");
+  std::ifstream f(path, std::ios::binary);
+  std::vector<float> v(count);
+  if (!f.read(reinterpret_cast<char*>(v.data()), std::streamsize(count * sizeof(float))) || f.peek() != EOF)
+    throw file_error(path, "checkpoint file is truncated or has the wrong size");
+  return v;
+}
+
+struct LogRow {
+  int iteration;
+  double loss, seconds;
+  double rmse = -1;  // first optimized parameter vs ground truth, when known
+};
+
+class Job {
+ public:
+  Job(Config c, bool quiet) : c_(std::move(c)), quiet_(quiet) {}
+
+  int run(bool resume) {
+    scene_ = load_scene(c_.scene);
+    for (const auto& o : c_.scene_overrides) apply_override(*scene_, o);
+    resolve_views();
+    for (auto& p : c_.params) {
+      p.handle = scene_->params.find(p.name);
+      if (p.handle < 0)
+        throw file_error(c_.file, "/parameters/" + p.name + ": unknown parameter (see `backlight params`)");
+      p.adam.reset(scene_->params[p.handle].size());
+    }
+    std::vector<std::string> names;
+    for (const auto& p : c_.params) names.push_back(p.name);
+    scene_->params.require_grad(names);
+    ensure_output_folder(c_.output);
+    // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
+    remove_stale_temporaries(c_.output);
+    prepare_targets();
+    int start = 0;
+    if (resume) {
+      start = load_checkpoint();
+    } else {
+      apply_initial_values();
+    }
+    snapshot_initial();
+    return optimize(start);
+  }
+
+ private:
+  Config c_;
+  bool quiet_;
+  std::unique_ptr<Scene> scene_;
+  std::vector<int> cameras_;
+  std::vector<Image> targets_;
+  std::vector<LogRow> log_;
+  double elapsed_before_ = 0;  // seconds spent before a resume
+  double initial_loss_ = -1;
+
+  std::string out(const std::string& name) const { return (fs::path(c_.output) / name).string(); }
+
+  // Grids are written in their medium's box; pictures share one scale, the ground truth's maximum.
+  VolumeGrid grid_of(const Param& p) const {
+    VolumeGrid g = bl::grid_of(p);
+    for (const auto& m : scene_->media)
+      if (m.grid && (scene_->params[m.density].name == p.name || scene_->params[m.albedo].name == p.name))
+        g.bbox_min = m.bbox_min, g.bbox_max = m.bbox_max;
+    return g;
+  }
+  static float grid_vmax(const OptimizedParam& op, const Param& p) {
+    const std::vector<float>& v = op.ground_truth ? op.ground_truth->value : p.value;
+    return v.empty() ? 1.f : *std::max_element(v.begin(), v.end());
+  }
+
+  // Extra poses from the config join the scene's cameras (and the reference scene's, for targets).
+  void add_extra_cameras(Scene& scene) const {
+    for (const auto& cam : c_.extra_cameras) {
+      for (const auto& existing : scene.cameras)
+        if (existing.name == cam.name)
+          throw file_error(c_.file, "/views/cameras: camera name '" + cam.name + "' already exists in the scene");
+      scene.cameras.push_back(cam);
+    }
+  }
+
+  void resolve_views() {
+    add_extra_cameras(*scene_);
+    for (const auto& v : c_.views) {
+      int index = -1;
+      for (size_t i = 0; i < scene_->cameras.size(); ++i)
+        if (scene_->cameras[i].name == v) index = int(i);
+      if (index < 0 && !v.empty() && v.size() <= 9 && v.find_first_not_of("0123456789") == std::string::npos)
+        index = std::stoi(v);  // at most 9 digits: fits an int
+      if (index < 0 || size_t(index) >= scene_->cameras.size())
+        throw file_error(c_.file, "/views/cameras: unknown camera '" + v + "'");
+      cameras_.push_back(index);
+    }
+    if (c_.width)
+      for (auto& cam : scene_->cameras) cam.width = c_.width, cam.height = c_.height, cam.update();
+    for (auto& cam : scene_->cameras) validate_camera(cam, c_.file);
+  }
+
+  void prepare_targets() {
+    fs::create_directories(out("targets"));
+    std::unique_ptr<Scene> reference;
+    for (size_t v = 0; v < cameras_.size(); ++v) {
+      const Camera& cam = scene_->cameras[size_t(cameras_[v])];
+      if (auto it = c_.target_files.find(cam.name); it != c_.target_files.end()) {
+        Image t = read_image(it->second, true);
+        if (t.width != cam.width || t.height != cam.height)
+          throw file_error(it->second, "target is " + std::to_string(t.width) + "x" + std::to_string(t.height) +
+                                           " but view '" + cam.name + "' renders " + std::to_string(cam.width) + "x" +
+                                           std::to_string(cam.height));
+        targets_.push_back(std::move(t));
+        continue;
+      }
+      if (c_.reference_overrides.empty())
+        throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
+      // Rendered from the reference variant and cached; a cache of the wrong size is re-rendered.
+      const std::string cached = out("targets/" + cam.name + ".exr");
+      if (fs::exists(cached)) {
+        Image t = read_image(cached, false);
+        if (t.width == cam.width && t.height == cam.height) {
+          targets_.push_back(std::move(t));
+          continue;
+        }
+      }
+      if (!reference) {
+        reference = load_scene(c_.scene);
+        for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
+        for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
+        add_extra_cameras(*reference);
+        if (c_.width)
+          for (auto& rc : reference->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
+      }
+      Image t = render(*reference, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
+      write_image(cached, t);
+      targets_.push_back(std::move(t));
+    }
+    // Ground truth for the parameter RMSE: the reference variant's values.
+    if (!c_.reference_overrides.empty()) {
+      if (!reference) {
+        reference = load_scene(c_.scene);
+        for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
+        for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
+      }
+      for (auto& p : c_.params) p.ground_truth = reference->params[reference->params.find(p.name)];
+    }
+  }
+
+  void apply_initial_values() {
+    for (auto& p : c_.params) {
+      Param& param = scene_->params[p.handle];
+      if (!p.init.is_null()) {
+        Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
+        apply_override(*scene_, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
+      }
+      if (!p.stages.empty()) resize_param(param, p.stages[0]);
+      p.adam.reset(param.size());
+    }
+    scene_->prepare_sampling();
+  }
+
+  void snapshot_initial() {
+    if (fs::exists(out("initial.exr"))) return;
+    write_image(out("initial.exr"), render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false}));
+  }
+
+  // Stage of a parameter at an iteration (the last stage extends to the end).
+  static const Stage* stage_at(const OptimizedParam& p, int iteration) {
+    for (const auto& s : p.stages)
+      if (iteration < s.until) return &s;
+    return p.stages.empty() ? nullptr : &p.stages.back();
+  }
+
+  int optimize(int start) {
+    std::signal(SIGINT, on_sigint);
+    Progress progress("optimize", uint64_t(c_.iterations), "it", !quiet_);
+    progress.advance(uint64_t(start));
+    auto t0 = std::chrono::steady_clock::now();
+    auto seconds = [&] {
+      return elapsed_before_ + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    };
+    const int view_count = int(cameras_.size());
+    const int per_iteration = c_.views_per_iteration > 0 ? std::min(c_.views_per_iteration, view_count) : view_count;
+    for (int it = start; it < c_.iterations; ++it) {
+      for (auto& p : c_.params) {
+        const Stage* s = stage_at(p, it);
+        Param& param = scene_->params[p.handle];
+        if (s && !has_resolution(param, *s)) {
+          resize_param(param, *s);
+          p.adam.reset(param.size());
+          scene_->prepare_sampling();  // majorants of the new grid
+        }
+        p.adam.set_learning_rate(s && s->lr > 0 ? s->lr : p.lr);
+      }
+      scene_->params.zero_grad();
+      // A subset of views per iteration: a rotation through a seeded permutation.
+      std::vector<int> order(static_cast<size_t>(view_count));
+      for (int v = 0; v < view_count; ++v) order[size_t(v)] = v;
+      for (int v = view_count - 1; v > 0; --v)
+        std::swap(order[size_t(v)], order[mix64(c_.seed + uint64_t(it) * 131 + uint64_t(v)) % uint64_t(v + 1)]);
+      double loss = 0;
+      Image first_view;
+      for (int k = 0; k < per_iteration; ++k) {
+        if (interrupted) break;
+        const int v = order[size_t(k)];
+        GradientRequest rq;
+        rq.loss = c_.loss;
+        rq.target = &targets_[size_t(v)];
+        rq.pass = {cameras_[size_t(v)], c_.spp, iteration_seed(c_.seed, it, v, 0), false};
+        rq.adjoint_seed = c_.decorrelate ? iteration_seed(c_.seed, it, v, 1) : rq.pass.seed;
+        rq.accumulate = true;
+        if (c_.adjoint_spp != c_.spp) {
+          // Different sample counts: the loss render and the adjoint pass are separate passes.
+          Image img = render(*scene_, rq.pass);
+          LossResult lr = compute_loss(c_.loss, img, targets_[size_t(v)]);
+          PassOptions adj{cameras_[size_t(v)], c_.adjoint_spp, rq.adjoint_seed, false};
+          backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
+            return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};
+          });
+          loss += lr.value;
+          if (k == 0) first_view = std::move(img);
+        } else {
+          GradientResult r = compute_gradient(*scene_, rq);
+          loss += r.loss;
+          if (k == 0) first_view = std::move(r.image);
+        }
+      }
+      if (interrupted) {
+        progress.finish();
+        write_checkpoint(it, seconds());
+        std::fprintf(stderr, "optimize: interrupted; checkpoint of %d completed iteration(s) in %s\n", it,
+                     c_.output.c_str());
+        return 0;
+      }
+      loss /= per_iteration;
+      for (auto& p : c_.params) {
+        Param& param = scene_->params[p.handle];
+        for (auto& g : param.grad) g /= float(per_iteration);
+        loss += add_total_variation(param, p.tv_weight);
+        p.adam.step(param.value, param.grad);
+      }
+      scene_->prepare_sampling();
+      if (initial_loss_ < 0 && log_.empty()) initial_loss_ = loss;
+      log_.push_back({it, loss, seconds(), current_rmse()});
+      write_log();
+      char note[64];
+      if (log_.back().rmse >= 0)
+        std::snprintf(note, sizeof note, "loss %.4g rmse %.4f", loss, log_.back().rmse);
+      else
+        std::snprintf(note, sizeof note, "loss %.4g", loss);
+      progress.set_note(note);
+      progress.advance(1);
+      if ((it + 1) % c_.snapshot_every == 0 || it + 1 == c_.iterations) snapshot(it + 1, first_view);
+      if ((it + 1) % c_.checkpoint_every == 0 || it + 1 == c_.iterations) write_checkpoint(it + 1, seconds());
+    }
+    progress.finish();
+    finish(seconds());
+    return 0;
+  }
+
+  // RMSE of the first optimized parameter against its ground truth (at rmse_resolution), or −1.
+  double current_rmse() const {
+    const OptimizedParam& p = c_.params.front();
+    if (!p.ground_truth) return -1;
+    const Param& gt = *p.ground_truth;
+    return rmse(scene_->params[p.handle], gt, c_.rmse_width ? c_.rmse_width : gt.width(),
+                c_.rmse_height ? c_.rmse_height : gt.height());
+  }
+
+  void write_log() {
+    const bool has_rmse = !log_.empty() && log_.front().rmse >= 0;
+    std::string csv = has_rmse ? "iteration,loss,time_s,param_rmse\n" : "iteration,loss,time_s\n";
+    PlotSeries loss, error;
+    char line[160];
+    for (const auto& r : log_) {
+      if (has_rmse)
+        std::snprintf(line, sizeof line, "%d,%.9g,%.3f,%.6g\n", r.iteration, r.loss, r.seconds, r.rmse);
+      else
+        std::snprintf(line, sizeof line, "%d,%.9g,%.3f\n", r.iteration, r.loss, r.seconds);
+      csv += line;
+      loss.x.push_back(r.iteration);
+      loss.y.push_back(r.loss);
+      error.x.push_back(r.iteration);
+      error.y.push_back(r.rmse);
+    }
+    write_text_atomic(out("loss.csv"), csv);
+    write_line_plot(out("loss.png"), loss, true, "loss");
+    if (has_rmse) write_line_plot(out("param_rmse.png"), error, true, "parameter RMSE");
+  }
+
+  void snapshot(int iteration, const Image& view) {
+    const std::string dir = out("snapshots");
+    fs::create_directories(dir);
+    char tag[32];
+    std::snprintf(tag, sizeof tag, "%05d", iteration);
+    for (const auto& p : c_.params) {
+      const Param& param = scene_->params[p.handle];
+      if (is_grid(param)) {
+        write_vol(dir + "/" + p.name + "_" + tag + ".vol", grid_of(param), param.value);
+        write_grid_picture(dir + "/" + p.name + "_" + tag + ".png", grid_sheet(view_of(param), grid_vmax(p, param)));
+      }
+      if (!param.is_image()) continue;
+      write_image(dir + "/" + p.name + "_" + tag + ".exr", param_image(param));
+      write_image(dir + "/" + p.name + "_" + tag + ".png", param_image(param));
+    }
+    if (view.width) write_image(dir + "/view_" + std::string(tag) + ".png", view);
+  }
+
+  void write_checkpoint(int next_iteration, double seconds) {
+    const std::string tmp = out("checkpoint.tmp"), final_dir = out("checkpoint"), old = out("checkpoint.old");
+    remove_checkpoint_dir(tmp);
+    fs::create_directories(tmp);
+    json state;
+    state["next_iteration"] = next_iteration;
+    state["seconds"] = seconds;
+    state["initial_loss"] = initial_loss_;
+    json log = json::array();
+    for (const auto& r : log_) log.push_back({r.iteration, r.loss, r.seconds, r.rmse});
+    state["log"] = log;
+    for (const auto& p : c_.params) {
+      const Param& param = scene_->params[p.handle];
+      state["parameters"][p.name] = {
+          {"shape", param.shape}, {"adam_t", p.adam.steps()}, {"adam_decay_t", p.adam.decay_steps()}};
+      write_floats(tmp + "/" + p.name + ".value", param.value);
+      write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m);
+      write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v);
+    }
+    // state.json is written last: a checkpoint directory is complete exactly when it has one.
+    write_text_atomic(tmp + "/state.json", state.dump(1));
+    crash_point("checkpoint-written");
+    // Swap directories without a gap: at every moment checkpoint/ or checkpoint.old/ is complete.
+    // checkpoint.old/ is deleted only while checkpoint/ is complete (after a resume from
+    // checkpoint.old/, checkpoint/ may be missing, and then checkpoint.old/ must survive until
+    // the new checkpoint/ is in place).
+    if (fs::exists(final_dir + "/state.json")) {
+      remove_checkpoint_dir(old);
+      crash_point("old-removed");
+      fs::rename(final_dir, old);
+      crash_point("final-moved");
+    } else {
+      remove_checkpoint_dir(final_dir);  // an incomplete leftover, if any
+    }
+    fs::rename(tmp, final_dir);
+    crash_point("tmp-renamed");
+    remove_checkpoint_dir(old);
+  }
+
+  // Removes a checkpoint directory, state.json first, so a half-removed one is never taken for a
+  // complete one.
+  static void remove_checkpoint_dir(const std::string& dir) {
+    std::error_code ec;
+    fs::remove(dir + "/state.json", ec);
+    fs::remove_all(dir);
+  }
+
+  // Fault injection for the crash-safety test: BACKLIGHT_CRASH_AT=<name> kills the process (as
+  // kill -9 would, with no cleanup) when it reaches the named point of the checkpoint swap.
+  static void crash_point(const char* name) {
+    static const char* at = std::getenv("BACKLIGHT_CRASH_AT");
+    if (at && std::strcmp(at, name) == 0) std::_Exit(137);
+  }
+
+  int load_checkpoint() {
+    std::string dir = out("checkpoint");
+    if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json"))
+      dir = out("checkpoint.old");
+    if (!fs::exists(dir + "/state.json")) throw file_error(c_.output, "--resume: no checkpoint in this directory");
+    std::ifstream f(dir + "/state.json");
+    std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+    json state = parse_json_text(text, dir + "/state.json");
+    try {
+      for (auto& p : c_.params) {
+        const json& s = state.at("parameters").at(p.name);
+        Param& param = scene_->params[p.handle];
+        param.shape = s.at("shape").get<std::vector<int>>();
+        size_t size = 1;
+        for (int d : param.shape) size *= size_t(d);
+        param.value = read_floats(dir + "/" + p.name + ".value", size);
+        param.grad.assign(size, 0.f);
+        p.adam.m = read_floats(dir + "/" + p.name + ".adam_m", size);
+        p.adam.v = read_floats(dir + "/" + p.name + ".adam_v", size);
+        p.adam.set_state(s.at("adam_t").get<int>(), s.at("adam_decay_t").get<int>());
+      }
+      for (const auto& r : state.at("log"))
+        log_.push_back({r[0].get<int>(), r[1].get<double>(), r[2].get<double>(), r[3].get<double>()});
+      elapsed_before_ = state.at("seconds").get<double>();
+      initial_loss_ = state.at("initial_loss").get<double>();
+      scene_->prepare_sampling();
+      return state.at("next_iteration").get<int>();
+    } catch (const json::exception& e) {
+      throw file_error(dir + "/state.json", std::string("checkpoint does not match this config (") + e.what() + ")");
+    }
+  }
+
+  void finish(double seconds) {
+    fs::create_directories(out("final"));
+    json summary;
+    summary["iterations"] = c_.iterations;
+    summary["wall_time_seconds"] = seconds;
+    summary["initial_loss"] = log_.empty() ? 0.0 : log_.front().loss;
+    summary["final_loss"] = log_.empty() ? 0.0 : log_.back().loss;
+    summary["views"] = cameras_.size();
+    summary["views_per_iteration"] = c_.views_per_iteration;
+    summary["spp"] = c_.spp;
+    summary["adjoint_spp"] = c_.adjoint_spp;
+    json final_params = json::object();
+    for (const auto& p : c_.params) {
+      const Param& param = scene_->params[p.handle];
+      if (is_grid(param)) {
+        write_vol(out("final/" + p.name + ".vol"), grid_of(param), param.value);
+        write_grid_picture(out("final/" + p.name + ".png"), grid_sheet(view_of(param), grid_vmax(p, param)));
+      } else if (param.is_image()) {
+        write_image(out("final/" + p.name + ".exr"), param_image(param));
+        write_image(out("final/" + p.name + ".png"), param_image(param));
+      } else {
+        final_params[p.name] = param.value;
+      }
+      if (p.ground_truth) {
+        const Param& gt = *p.ground_truth;
+        int w = c_.rmse_width ? c_.rmse_width : gt.width(), h = c_.rmse_height ? c_.rmse_height : gt.height();
+        // The initial value, rebuilt the same way the run started.
+        auto initial_scene = load_scene(c_.scene);
+        for (const auto& o : c_.scene_overrides) apply_override(*initial_scene, o);
+        Param initial = initial_scene->params[initial_scene->params.find(p.name)];
+        if (!p.init.is_null()) {
+          Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
+          apply_override(*initial_scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
+          initial = initial_scene->params[initial_scene->params.find(p.name)];
+        }
+        double before = rmse(initial, gt, w, h), after = rmse(param, gt, w, h);
+        if (is_grid(param) && is_grid(gt) && is_grid(initial)) {
+          // slices.png: ground truth / initial / final, rows of the same four panels.
+          const float vmax = grid_vmax(p, param);
+          write_grid_picture(out("slices.png"),
+                             stack_rows({grid_sheet(view_of(gt), vmax), grid_sheet(view_of(initial), vmax),
+                                         grid_sheet(view_of(param), vmax)}));
+        }
+        summary["parameters"][p.name] = {
+            {"rmse_initial", before},
+            {"rmse_final", after},
+            {"rmse_reduction", after > 0 ? before / after : 0.0},
+            {"rmse_resolution", is_grid(gt) ? json{gt.shape[2], gt.shape[1], gt.shape[0]} : json{w, h}}};
+      }
+    }
+    write_text_atomic(out("final/params.json"), final_params.dump(1) + "\n");
+    // compare.png: target | initial | final, for the first view.
+    Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
+    write_image(out("final/view.exr"), final_view);
+    Image initial = read_image(out("initial.exr"), false);
+    const Image& target = targets_[0];
+    Image compare(target.width * 3, target.height, 3);
+    const Image* panels[3] = {&target, &initial, &final_view};
+    for (int k = 0; k < 3; ++k)
+      for (int y = 0; y < target.height; ++y)
+        for (int x = 0; x < target.width; ++x)
+          for (int ch = 0; ch < 3; ++ch) compare.at(k * target.width + x, y, ch) = panels[k]->at(x, y, ch);
+    write_image(out("compare.png"), compare);
+    write_text_atomic(out("summary.json"), summary.dump(1) + "\n");
+    std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations,
+                 seconds, summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(),
+                 c_.output.c_str());
+    for (auto it = summary["parameters"].begin(); summary.contains("parameters") && it != summary["parameters"].end();
+         ++it) {
+      std::string at;
+      for (const auto& d : it.value()["rmse_resolution"]) at += (at.empty() ? "" : "x") + std::to_string(d.get<int>());
+      std::fprintf(stderr, "optimize: %s RMSE vs ground truth %.4f -> %.4f (%.1fx) at %s\n", it.key().c_str(),
+                   it.value()["rmse_initial"].get<double>(), it.value()["rmse_final"].get<double>(),
+                   it.value()["rmse_reduction"].get<double>(), at.c_str());
+    }
+  }
+};
+
+}  // namespace
+
+int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet) {
+  if (threads < 0) throw InputError("--threads must be ≥ 1");
+  std::unique_ptr<tbb::global_control> limit;
+  if (threads > 0)
+    limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
+  return with_path_errors([&] {
+    Config config = parse_config(config_path);
+    if (!resume_dir.empty()) {
+      if (!fs::is_directory(resume_dir)) throw file_error(resume_dir, "--resume: not a directory");
+      config.output = resume_dir;
+    }
+    Job job(std::move(config), quiet);
+    return job.run(!resume_dir.empty());
+  });
+}
+
+void check_optimize_config(const std::string& config_path) {
+  with_path_errors([&] { (void)parse_config(config_path); });
+}
+
+}  // namespace bl

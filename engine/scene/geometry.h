@@ -1,0 +1,41 @@
+#pragma once
+// Embree 3 wrapper: one RTCScene of triangle meshes, closest-hit and shadow queries.
+#include <embree3/rtcore.h>
+
+#include <vector>
+
+#include "engine/scene/camera.h"
+#include "engine/core/math.h"
+
+namespace bl {
+
+struct Mesh;
+
+struct Hit {
+  float t = 0.f;
+  int mesh = -1;  // -1: the ray escaped
+  int triangle = -1;
+  float b1 = 0.f, b2 = 0.f;  // barycentrics of vertices 1 and 2
+};
+
+class Geometry {
+ public:
+  Geometry();
+  ~Geometry();
+  Geometry(const Geometry&) = delete;
+  Geometry& operator=(const Geometry&) = delete;
+
+  // Builds the BVH over the meshes' world-space positions (shared, not copied: the meshes must
+  // outlive the geometry and keep one float of padding after the last vertex, see Mesh).
+  void build(const std::vector<Mesh>& meshes);
+  Hit intersect(const Ray& ray) const;
+  bool occluded(const Vec3f& origin, const Vec3f& direction, float tmax) const;
+  // Rays (closest-hit and shadow) cast so far by the calling thread; callers take differences.
+  static uint64_t thread_ray_count();
+
+ private:
+  RTCDevice device_ = nullptr;
+  RTCScene scene_ = nullptr;
+};
+
+}  // namespace bl

@@ -1,0 +1,329 @@
+#include "engine/scene/scene.h"
+#include "engine/scene/openvdb_io.h"
+#include "engine/scene/volume_io.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "engine/core/limits.h"
+
+namespace bl {
+
+void validate_camera(Camera& cam, const std::string& source) {
+  const std::string where = source + ": camera '" + cam.name + "'";
+  limits::check_image_size(where, uint64_t(std::max(0, cam.width)), uint64_t(std::max(0, cam.height)));
+  if (cam.width < 1 || cam.height < 1) throw InputError(where + ": the film needs at least one pixel");
+  for (const Vec3f& v : {cam.origin, cam.target, cam.up})
+    if (!is_finite(v) || std::abs(v.x) > limits::kCoordinate || std::abs(v.y) > limits::kCoordinate ||
+        std::abs(v.z) > limits::kCoordinate)
+      throw InputError(where + ": position or direction not finite or beyond 1e18 in magnitude");
+  if (!(cam.fov_degrees > 0.f && cam.fov_degrees < 180.f)) throw InputError(where + ": fov must be in (0, 180)");
+  cam.update();
+  // A frame from nearly coincident or overflowing inputs can still come out NaN; Embree aborts on
+  // such rays, so every derived vector is checked here, once.
+  if (!is_finite(cam.forward) || !is_finite(cam.right) || !is_finite(cam.true_up) || !std::isfinite(cam.tan_x) ||
+      !std::isfinite(cam.tan_y) || length(cam.right) < 0.5f)
+    throw InputError(where + ": degenerate view frame (origin, target and up must span a frame)");
+  for (float px : {0.f, float(cam.width)})
+    for (float py : {0.f, float(cam.height)}) {
+      const Ray r = cam.generate(px, py);
+      if (!is_finite(r.direction) || !std::isfinite(r.tmin))
+        throw InputError(where + ": the film's corner rays are not finite");
+    }
+}
+
+float Mesh::triangle_area(size_t t) const {
+  const Vec3f& a = positions[indices[3 * t]];
+  const Vec3f& b = positions[indices[3 * t + 1]];
+  const Vec3f& c = positions[indices[3 * t + 2]];
+  return 0.5f * length(cross(b - a, c - a));
+}
+
+void Scene::prepare() {
+  for (auto& cam : cameras) validate_camera(cam, source);
+  for (auto& m : meshes) {
+    m.face_normals.resize(m.triangle_count());
+    for (size_t t = 0; t < m.triangle_count(); ++t) {
+      const Vec3f &a = m.positions[m.indices[3 * t]], &b = m.positions[m.indices[3 * t + 1]],
+                  &c = m.positions[m.indices[3 * t + 2]];
+      const Vec3f n = cross(b - a, c - a);
+      const float len = length(n);
+      m.face_normals[t] = len > 0.f ? n / len : Vec3f(0.f, 0.f, 1.f);  // degenerate: never hit in practice
+    }
+  }
+  for (auto& e : area_emitters) {
+    const Mesh& m = meshes[size_t(e.mesh)];
+    std::vector<double> areas(m.triangle_count());
+    double total = 0;
+    for (size_t t = 0; t < areas.size(); ++t) total += areas[t] = m.triangle_area(t);
+    e.total_area = float(total);
+    e.triangle_cdf.resize(areas.size());
+    double run = 0;
+    for (size_t t = 0; t < areas.size(); ++t) e.triangle_cdf[t] = float((run += areas[t]) / total);
+    if (!e.triangle_cdf.empty()) e.triangle_cdf.back() = 1.f;
+  }
+  geometry = std::make_unique<Geometry>();
+  geometry->build(meshes);
+  has_null_surfaces = false;
+  for (const auto& m : meshes) has_null_surfaces |= materials[size_t(m.material)].is_null;
+  prepare_sampling();
+}
+
+void Scene::prepare_sampling() {
+  environment.prepare(params);
+  for (auto& m : media) m.prepare(params);
+}
+
+bool Scene::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {
+  if (!has_null_surfaces) return geometry->occluded(o, d, tmax);
+  Ray ray{o, d, 0.f, tmax};
+  for (int k = 0; k <= kMaxNullCrossings; ++k) {
+    const Hit hit = geometry->intersect(ray);
+    if (hit.mesh < 0) return false;
+    const Mesh& m = meshes[size_t(hit.mesh)];
+    if (!materials[size_t(m.material)].is_null) return true;
+    const Vec3f p = ray.origin + ray.direction * hit.t;
+    const Vec3f next = offset_origin(p, m.face_normals[size_t(hit.triangle)], d);
+    ray.tmax -= length(next - ray.origin);
+    ray.origin = next;
+    if (!(ray.tmax > 0.f)) return false;
+  }
+  return true;
+}
+
+SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {
+  const Mesh& m = meshes[size_t(hit.mesh)];
+  const uint32_t i0 = m.indices[3 * size_t(hit.triangle)], i1 = m.indices[3 * size_t(hit.triangle) + 1],
+                 i2 = m.indices[3 * size_t(hit.triangle) + 2];
+  const float b0 = 1.f - hit.b1 - hit.b2;
+  SurfacePoint sp;
+  sp.mesh = hit.mesh;
+  sp.p = ray.origin + ray.direction * hit.t;
+  sp.geometric_normal = m.face_normals[size_t(hit.triangle)];
+  if (!m.normals.empty()) {
+    Vec3f n = m.normals[i0] * b0 + m.normals[i1] * hit.b1 + m.normals[i2] * hit.b2;
+    float len = length(n);
+    sp.shading_normal = len > 0 ? n / len : sp.geometric_normal;
+  } else {
+    sp.shading_normal = sp.geometric_normal;
+  }
+  if (!m.uvs.empty()) {
+    sp.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * hit.b1 + m.uvs[i2].x * hit.b2,
+             m.uvs[i0].y * b0 + m.uvs[i1].y * hit.b1 + m.uvs[i2].y * hit.b2};
+  } else {
+    sp.uv = {hit.b1, hit.b2};
+  }
+  return sp;
+}
+
+EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) const {
+  const AreaEmitter& e = area_emitters[size_t(index)];
+  const Mesh& m = meshes[size_t(e.mesh)];
+  // Pick a triangle by area with u.x, then reuse the remainder of u.x inside it.
+  size_t t = size_t(std::lower_bound(e.triangle_cdf.begin(), e.triangle_cdf.end(), u.x) - e.triangle_cdf.begin());
+  t = std::min(t, e.triangle_cdf.size() - 1);
+  float lo = t == 0 ? 0.f : e.triangle_cdf[t - 1], hi = e.triangle_cdf[t];
+  float ux = hi > lo ? std::clamp((u.x - lo) / (hi - lo), 0.f, 1.f) : 0.f;
+  // Uniform point on the triangle (square-root parameterisation).
+  float su = std::sqrt(ux), b1 = 1.f - su, b2 = u.y * su, b0 = 1.f - b1 - b2;
+  const uint32_t i0 = m.indices[3 * t], i1 = m.indices[3 * t + 1], i2 = m.indices[3 * t + 2];
+  EmitterSample s;
+  s.point = m.positions[i0] * b0 + m.positions[i1] * b1 + m.positions[i2] * b2;
+  const Vec3f n = m.face_normals[t];
+  Vec3f shading = n;
+  if (!m.normals.empty()) shading = normalize(m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2);
+  if (!m.uvs.empty())
+    s.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * b1 + m.uvs[i2].x * b2,
+            m.uvs[i0].y * b0 + m.uvs[i1].y * b1 + m.uvs[i2].y * b2};
+  else
+    s.uv = {b1, b2};
+  Vec3f to = s.point - ref;
+  float d2 = dot(to, to);
+  s.distance = std::sqrt(d2);
+  if (s.distance <= 0.f) return {};
+  s.wi = to / s.distance;
+  // Emission leaves on the shading normal's side; the pdf uses the geometric cosine.
+  float cos_shading = -dot(shading, s.wi);
+  float cos_geometric = std::abs(dot(n, s.wi));
+  if (cos_shading <= 0.f || cos_geometric <= 0.f) return {};
+  s.pdf = d2 / (cos_geometric * e.total_area);
+  return s;
+}
+
+}  // namespace bl
+
+// ---- Built-in shapes, mesh finishing, parameter overrides -------------------------------------
+
+#include <cstring>
+#include <filesystem>
+#include <sstream>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/io/image_io.h"
+#include "engine/scene/scene_load.h"
+
+namespace bl {
+
+Mesh make_rectangle() {
+  Mesh m;
+  m.positions = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  m.normals.assign(4, {0, 0, 1});
+  // uv = ((x+1)/2, (1−y)/2): row 0 of an image lands at the top (+y).
+  m.uvs = {{0, 1}, {1, 1}, {1, 0}, {0, 0}};
+  m.indices = {0, 1, 2, 0, 2, 3};
+  return m;
+}
+
+Mesh make_cube() {
+  Mesh m;
+  // Each face: outward normal n, in-plane axes a (u) and b (v up); corners n ± a ± b.
+  const Vec3f faces[6][3] = {{{1, 0, 0}, {0, 0, -1}, {0, 1, 0}}, {{-1, 0, 0}, {0, 0, 1}, {0, 1, 0}},
+                             {{0, 1, 0}, {1, 0, 0}, {0, 0, -1}}, {{0, -1, 0}, {1, 0, 0}, {0, 0, 1}},
+                             {{0, 0, 1}, {1, 0, 0}, {0, 1, 0}},  {{0, 0, -1}, {-1, 0, 0}, {0, 1, 0}}};
+  for (const auto& f : faces) {
+    const Vec3f n = f[0], a = f[1], b = f[2];
+    uint32_t base = uint32_t(m.positions.size());
+    const float corners[4][2] = {{-1, -1}, {1, -1}, {1, 1}, {-1, 1}};
+    for (const auto& c : corners) {
+      m.positions.push_back(n + a * c[0] + b * c[1]);
+      m.normals.push_back(n);
+      m.uvs.push_back({(c[0] + 1) / 2, (1 - c[1]) / 2});
+    }
+    // Winding (p1−p0)×(p2−p0) = a×b must agree with n; every face above has a×b = n.
+    for (uint32_t i : {0u, 1u, 2u, 0u, 2u, 3u}) m.indices.push_back(base + i);
+  }
+  return m;
+}
+
+void finalize_mesh(Mesh& m, const Transform& to_world, bool flip_normals, const std::string& where) {
+  // Expects an unpadded mesh (as built by make_*, inline meshes and load_gltf_meshes).
+  for (auto& p : m.positions) p = to_world.point(p);
+  for (auto& n : m.normals) n = to_world.normal(n);
+  const float det = to_world.m[0][0] * (to_world.m[1][1] * to_world.m[2][2] - to_world.m[1][2] * to_world.m[2][1]) -
+                    to_world.m[0][1] * (to_world.m[1][0] * to_world.m[2][2] - to_world.m[1][2] * to_world.m[2][0]) +
+                    to_world.m[0][2] * (to_world.m[1][0] * to_world.m[2][1] - to_world.m[1][1] * to_world.m[2][0]);
+  if (det == 0.f) throw InputError(where + ": degenerate transform (zero scale)");
+  // A mirroring transform reverses the winding; swap to keep it consistent with the normals.
+  bool swap = (det < 0) != flip_normals;
+  if (flip_normals)
+    for (auto& n : m.normals) n = -n;
+  if (swap)
+    for (size_t t = 0; t + 2 < m.indices.size(); t += 3) std::swap(m.indices[t + 1], m.indices[t + 2]);
+  for (const auto& p : m.positions)
+    if (!is_finite(p)) throw InputError(where + ": vertex position is not finite");
+  for (const auto& n : m.normals)
+    if (!is_finite(n)) throw InputError(where + ": vertex normal is not finite or zero");
+  if (m.indices.empty() || m.indices.size() % 3 != 0) throw InputError(where + ": mesh has no triangles");
+  limits::require_at_most(where, "vertex count", m.positions.size(), limits::kMeshElements);
+  limits::require_at_most(where, "triangle count", m.indices.size() / 3, limits::kMeshElements);
+  for (const auto& p : m.positions)
+    if (std::abs(p.x) > limits::kCoordinate || std::abs(p.y) > limits::kCoordinate ||
+        std::abs(p.z) > limits::kCoordinate)
+      throw InputError(where + ": vertex coordinate exceeds the limit of 1e18 in magnitude");
+  for (uint32_t i : m.indices)
+    if (i >= m.positions.size()) throw InputError(where + ": triangle index out of range");
+  m.positions.push_back({0, 0, 0});  // Embree padding, see Mesh
+}
+
+void validate_param(const Param& p, const std::string& where) {
+  for (size_t i = 0; i < p.value.size(); ++i) {
+    float v = p.value[i];
+    if (!std::isfinite(v))
+      throw InputError(where + ": parameter '" + p.name + "' element " + std::to_string(i) + " is NaN or infinite");
+    if (v < p.lower || v > p.upper) {
+      std::ostringstream s;
+      s << where << ": parameter '" << p.name << "' element " << i << " = " << v << " is outside its valid range ["
+        << p.lower << ", " << p.upper << "]" << (v < 0 ? " (negative)" : "");
+      throw InputError(s.str());
+    }
+  }
+}
+
+namespace {
+// The grid of a .vdb file for parameter `name`: one named like it ("fog.density") or like its
+// key ("density"), else the file's only grid.
+VolumeGrid read_vdb_for(const std::string& path, const std::string& name) {
+  try {
+    return read_vdb(path, name);
+  } catch (const InputError&) {
+  }
+  const std::string key = name.substr(name.find('.') + 1);
+  try {
+    return read_vdb(path, key);
+  } catch (const InputError&) {
+  }
+  return read_vdb(path, "");
+}
+}  // namespace
+
+void apply_override(Scene& scene, const std::string& assignment) {
+  auto eq = assignment.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw InputError("--set '" + assignment + "': expected NAME=FILE or NAME=v1,v2,...");
+  std::string name = assignment.substr(0, eq), rhs = assignment.substr(eq + 1);
+  int h = scene.params.find(name);
+  if (h < 0) throw InputError("--set: unknown parameter '" + name + "' (see `backlight params`)");
+  Param& p = scene.params[h];
+  std::vector<float> values;
+  // Numbers (including nan/inf, which validation then rejects by name) unless it names a file.
+  std::error_code ec;
+  bool numeric = !rhs.empty() && !std::filesystem::exists(rhs, ec);
+  if (ec && rhs.find_first_of("/.") != std::string::npos && ec != std::errc::no_such_file_or_directory)
+    throw InputError("--set " + name + ": '" + rhs.substr(0, 120) + (rhs.size() > 120 ? "...'" : "'") +
+                     " is not a usable file name (" + ec.message() + ")");
+  if (numeric) {
+    std::stringstream ss(rhs);
+    std::string item;
+    while (numeric && std::getline(ss, item, ',')) {
+      char* end = nullptr;
+      float v = std::strtof(item.c_str(), &end);
+      while (end && *end == ' ') ++end;
+      if (item.empty() || end == item.c_str() || *end != '\0') numeric = false;
+      values.push_back(v);
+    }
+    if (!numeric && rhs.find_first_of("/.") == std::string::npos)
+      throw InputError("--set " + name + ": '" + rhs + "' is neither numbers nor an existing image file");
+  }
+  if (numeric) {
+    if (values.size() == 1 && p.size() > 1) values.assign(p.size(), values[0]);  // broadcast a scalar
+    if (values.size() == 3 && p.is_image() && p.channels() == 3) {
+      std::vector<float> full(p.size());
+      for (size_t i = 0; i < full.size(); ++i) full[i] = values[i % 3];
+      values = full;
+    }
+    if (values.size() != p.size())
+      throw InputError("--set " + name + ": got " + std::to_string(values.size()) + " values, parameter has shape " +
+                       scene.params.shape_string(h));
+  } else if (p.shape.size() == 4 || std::filesystem::path(rhs).extension() == ".vol" ||
+             std::filesystem::path(rhs).extension() == ".vdb") {
+    // A volume grid: a .vol or .vdb file of exactly the parameter's [Z, Y, X, C] (the .vdb grid
+    // named after the parameter, or its only one).
+    VolumeGrid grid = std::filesystem::path(rhs).extension() == ".vdb" ? read_vdb_for(rhs, name) : read_vol(rhs);
+    if (grid.shape() != p.shape) {
+      const auto shape = grid.shape();
+      throw InputError(rhs + ": grid is [" + std::to_string(shape[0]) + "," + std::to_string(shape[1]) + "," +
+                       std::to_string(shape[2]) + "," + std::to_string(shape[3]) + "] but parameter '" + name +
+                       "' has shape " + scene.params.shape_string(h));
+    }
+    values = std::move(grid.data);
+  } else {
+    values.clear();
+    Image img = read_image(rhs, !p.is_image() ? false : true);
+    if (!p.is_image() || img.width != p.width() || img.height != p.height())
+      throw InputError(rhs + ": image is " + std::to_string(img.width) + "x" + std::to_string(img.height) +
+                       " but parameter '" + name + "' has shape " + scene.params.shape_string(h));
+    int c = p.channels();
+    values.resize(p.size());
+    for (size_t i = 0; i < img.pixel_count(); ++i)
+      for (int k = 0; k < c; ++k)
+        values[i * size_t(c) + size_t(k)] = img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
+  }
+  Param candidate = p;
+  candidate.value = values;
+  validate_param(candidate, "--set " + name);
+  p.value = std::move(values);
+  scene.prepare_sampling();
+}
+
+}  // namespace bl

@@ -1,0 +1,102 @@
+#pragma once
+// The loaded scene: meshes in world space, materials, emitters, cameras, integrator settings and
+// the parameter store every differentiable value lives in.
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "engine/scene/camera.h"
+#include "engine/scene/geometry.h"
+#include "engine/core/params.h"
+#include "kernels/bsdf/material.h"
+#include "kernels/emitter/area.h"
+#include "kernels/emitter/envmap.h"
+#include "kernels/medium/medium.h"
+
+namespace bl {
+
+struct Mesh {
+  std::string name;
+  // World space. `positions` carries one extra padding element at the end because Embree may read
+  // 16 bytes for the last 12-byte vertex; vertex_count() excludes it.
+  std::vector<Vec3f> positions;
+  std::vector<Vec3f> normals;  // per vertex, or empty (flat shading)
+  std::vector<Vec2f> uvs;      // per vertex, or empty (uv = barycentrics)
+  std::vector<uint32_t> indices;
+  std::vector<Vec3f> face_normals;  // unit (p1 − p0) × (p2 − p0) per triangle, built by Scene::prepare
+  int material = -1;
+  int emitter = -1;  // index into Scene::area_emitters, or -1
+  // Media on either side (indices into Scene::media, -1 = vacuum). A shape naming neither is no
+  // medium transition: rays crossing it stay in the medium they were in.
+  int interior = -1, exterior = -1;
+  bool medium_transition() const { return interior >= 0 || exterior >= 0; }
+  size_t vertex_count() const { return positions.empty() ? 0 : positions.size() - 1; }
+  size_t triangle_count() const { return indices.size() / 3; }
+  float triangle_area(size_t t) const;
+};
+
+struct IntegratorSettings {
+  int spp = 16;
+  int max_depth = 6;  // path segments, camera ray included; -1 = unlimited
+  int rr_depth = 5;   // 0 = no Russian roulette
+  uint64_t seed = 0;
+  bool hide_emitters = false;
+};
+
+// Local geometry at a ray hit.
+struct SurfacePoint {
+  Vec3f p;
+  Vec3f geometric_normal;  // unit, from the winding (p1 − p0) × (p2 − p0)
+  Vec3f shading_normal;    // unit, interpolated vertex normal (or the geometric one)
+  Vec2f uv;
+  int mesh = -1;
+};
+
+struct Scene {
+  std::string source;  // file it was loaded from, for messages
+  ParamStore params;
+  std::vector<Material> materials;
+  std::vector<Mesh> meshes;
+  std::vector<AreaEmitter> area_emitters;
+  Environment environment;
+  std::vector<Camera> cameras;
+  std::vector<Medium> media;
+  IntegratorSettings settings;
+  std::unique_ptr<Geometry> geometry;
+  bool has_null_surfaces = false;  // derived by prepare()
+
+  // Builds derived data: BVH, emitter sampling tables, environment distribution. Call after
+  // loading and whenever parameter values changed that sampling depends on.
+  void prepare();
+  void prepare_sampling();  // environment distribution and medium majorants (parameter-dependent)
+  SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
+  int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
+  float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }
+  // Samples a point on area emitter `index` uniformly by area.
+  EmitterSample sample_area_emitter(int index, const Vec3f& ref, Vec2f u) const;
+  // Whether a non-null surface blocks o + t·d for t < tmax (null surfaces let rays through).
+  bool occluded(const Vec3f& o, const Vec3f& d, float tmax) const;
+  // The medium a ray travelling along `d` is in after crossing (or leaving) mesh `m` at a point
+  // with geometric normal `ng`, coming from medium `current`.
+  int medium_after(const Mesh& m, const Vec3f& d, const Vec3f& ng, int current) const {
+    if (!m.medium_transition()) return current;
+    return dot(d, ng) < 0.f ? m.interior : m.exterior;
+  }
+};
+
+// Longest chain of null-surface crossings one ray segment may take (a guard against rays caught
+// between coincident null surfaces).
+inline constexpr int kMaxNullCrossings = 256;
+
+// Checks a camera read from input (film size within the limits, finite frame and corner rays) and
+// derives its frame; throws InputError naming `source`.
+void validate_camera(Camera& cam, const std::string& source);
+
+// Offsets a ray origin along the geometric normal, to the side `direction` leaves on, so the
+// spawned ray does not re-hit its own surface.
+inline Vec3f offset_origin(const Vec3f& p, const Vec3f& geometric_normal, const Vec3f& direction) {
+  float scale = 1e-4f * (1.f + std::max(std::abs(p.x), std::max(std::abs(p.y), std::abs(p.z))));
+  return p + geometric_normal * (dot(geometric_normal, direction) > 0.f ? scale : -scale);
+}
+
+}  // namespace bl

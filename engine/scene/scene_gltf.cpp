@@ -1,0 +1,540 @@
+// glTF 2.0 (.gltf/.glb) loading through tinygltf: meshes with node transforms, cameras,
+// metallic-roughness materials and emissive materials as area lights.
+#include <tiny_gltf.h>
+
+#include <cmath>
+#include <filesystem>
+#include <cstring>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <set>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/io/image_io.h"
+#include "engine/scene/scene_load.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string first_line(std::string s) {
+  while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
+  if (auto nl = s.find('\n'); nl != std::string::npos) s.resize(nl);
+  return s;
+}
+
+// The JSON of a .gltf file, or of a .glb's first chunk (binary glTF: 12-byte header, then chunks
+// of length, type, data; the first is the JSON).
+std::string gltf_json_text(const std::string& path, bool binary) {
+  limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
+  std::ifstream f(path, std::ios::binary);
+  std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  if (!binary) return bytes;
+  if (bytes.size() < 20 || bytes.compare(0, 4, "glTF") != 0) throw file_error(path, "invalid glTF: not a binary glTF");
+  uint32_t length = 0;
+  std::memcpy(&length, bytes.data() + 12, 4);
+  if (length > bytes.size() - 20) throw file_error(path, "invalid glTF: the JSON chunk extends past the end of the file");
+  return bytes.substr(20, length);
+}
+
+// File access for tinygltf (the glTF itself, external buffers and images): only regular files,
+// of bounded size, with paths used as written. tinygltf's defaults would read a directory or a
+// device named by a `uri` (its size then reads as 2^63 and the allocation fails) and expand
+// paths through wordexp.
+bool gltf_file_exists(const std::string& path, void*) {
+  std::error_code ec;
+  return fs::is_regular_file(path, ec);
+}
+std::string gltf_expand_path(const std::string& path, void*) { return path; }
+bool gltf_read_file(std::vector<unsigned char>* out, std::string* err, const std::string& path, void*) {
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) {
+    if (err) *err += "'" + path.substr(0, 200) + "' is not a regular file\n";
+    return false;
+  }
+  const auto size = fs::file_size(path, ec);
+  if (ec || size > limits::kFileBytes) {
+    if (err) *err += "'" + path.substr(0, 200) + "' exceeds the limit of " + std::to_string(limits::kFileBytes) + " bytes\n";
+    return false;
+  }
+  std::ifstream f(path, std::ios::binary);
+  out->resize(size_t(size));
+  if (size > 0 && !f.read(reinterpret_cast<char*>(out->data()), std::streamsize(size))) {
+    if (err) *err += "cannot read '" + path.substr(0, 200) + "'\n";
+    return false;
+  }
+  return true;
+}
+bool gltf_write_file(std::string*, const std::string&, const std::vector<unsigned char>&, void*) { return false; }
+
+tinygltf::Model read_model(const std::string& path) {
+  require_input_file(path);
+  tinygltf::TinyGLTF loader;
+  loader.SetFsCallbacks({gltf_file_exists, gltf_expand_path, gltf_read_file, gltf_write_file, nullptr});
+  tinygltf::Model model;
+  std::string err, warn;
+  std::string ext = fs::path(path).extension().string();
+  for (auto& c : ext) c = char(std::tolower(c));
+  // tinygltf's JSON parser recurses without a bound (60k-deep `extras` overflow the stack).
+  limits::check_json_depth(path, gltf_json_text(path, ext == ".glb"));
+  bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
+                          : loader.LoadASCIIFromFile(&model, &err, &warn, path);
+  if (!ok || !err.empty())
+    throw file_error(path, "invalid glTF: " + (err.empty() ? std::string("cannot parse") : first_line(err)));
+  return model;
+}
+
+Transform node_local(const tinygltf::Node& node) {
+  Transform t;
+  if (node.matrix.size() == 16) {
+    // glTF matrices are column-major.
+    for (int r = 0; r < 4; ++r)
+      for (int c = 0; c < 4; ++c) t.m[r][c] = float(node.matrix[size_t(c * 4 + r)]);
+    return t;
+  }
+  if (node.scale.size() == 3) t = Transform::scale({float(node.scale[0]), float(node.scale[1]), float(node.scale[2])});
+  if (node.rotation.size() == 4) {
+    // Unit quaternion (x, y, z, w) → rotation matrix.
+    float x = float(node.rotation[0]), y = float(node.rotation[1]), z = float(node.rotation[2]),
+          w = float(node.rotation[3]);
+    Transform r;
+    r.m[0][0] = 1 - 2 * (y * y + z * z);
+    r.m[0][1] = 2 * (x * y - z * w);
+    r.m[0][2] = 2 * (x * z + y * w);
+    r.m[1][0] = 2 * (x * y + z * w);
+    r.m[1][1] = 1 - 2 * (x * x + z * z);
+    r.m[1][2] = 2 * (y * z - x * w);
+    r.m[2][0] = 2 * (x * z - y * w);
+    r.m[2][1] = 2 * (y * z + x * w);
+    r.m[2][2] = 1 - 2 * (x * x + y * y);
+    t = r * t;
+  }
+  if (node.translation.size() == 3)
+    t = Transform::translate({float(node.translation[0]), float(node.translation[1]), float(node.translation[2])}) * t;
+  return t;
+}
+
+// The bytes of accessor `index` whose elements are `element_size` bytes: every index on the way
+// (accessor, buffer view, buffer) and the extent of the last element are checked.
+struct AccessorBytes {
+  const unsigned char* data;
+  size_t stride, count;
+};
+AccessorBytes accessor_bytes(const tinygltf::Model& model, int index, size_t element_size, const std::string& path) {
+  const std::string what = "accessor " + std::to_string(index);
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, what + " is out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  if (acc.bufferView < 0 || size_t(acc.bufferView) >= model.bufferViews.size())
+    throw file_error(path, what + " has no buffer view");
+  const auto& view = model.bufferViews[size_t(acc.bufferView)];
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
+    throw file_error(path, "buffer view references a missing buffer");
+  const auto& buf = model.buffers[size_t(view.buffer)];
+  const uint64_t stride = view.byteStride ? view.byteStride : element_size;
+  // Every offset and extent in 64-bit checked arithmetic: counts near 2^64 must not wrap around.
+  limits::require_at_most(path, what + ": element count", acc.count, 3 * limits::kMeshElements);
+  uint64_t start = 0, span = 0, end = 0;
+  bool fits = limits::checked_add(view.byteOffset, acc.byteOffset, start);
+  if (acc.count > 0)
+    fits = fits && limits::checked_mul(stride, acc.count - 1, span) && limits::checked_add(span, element_size, span);
+  fits = fits && limits::checked_add(start, span, end);
+  if (!fits || end > buf.data.size()) throw file_error(path, what + " reads past the end of its buffer");
+  return {buf.data.data() + start, size_t(stride), size_t(acc.count)};
+}
+
+// Reads accessor `index` as floats (count × components).
+std::vector<float> read_floats(const tinygltf::Model& model, int index, int components, const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT ||
+      tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
+    throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
+  const AccessorBytes bytes = accessor_bytes(model, index, size_t(components) * 4, path);
+  std::vector<float> out(bytes.count * size_t(components));
+  for (size_t i = 0; i < bytes.count; ++i)
+    std::memcpy(&out[i * size_t(components)], bytes.data + i * bytes.stride, size_t(components) * 4);
+  for (float v : out)
+    if (!std::isfinite(v)) throw file_error(path, "accessor " + std::to_string(index) + " holds non-finite values");
+  return out;
+}
+
+std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
+                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
+                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
+                                                                              : 0;
+  if (!size) throw file_error(path, "unsupported index type");
+  const AccessorBytes bytes = accessor_bytes(model, index, size, path);
+  std::vector<uint32_t> out(bytes.count);
+  for (size_t i = 0; i < bytes.count; ++i) {
+    const unsigned char* p = bytes.data + i * bytes.stride;
+    out[i] = size == 1   ? p[0]
+             : size == 2 ? uint32_t(p[0] | (p[1] << 8))
+                         : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
+  }
+  return out;
+}
+
+struct Primitive {
+  Mesh mesh;  // world space, unpadded
+  int material = -1;
+  std::string name;
+};
+
+// The element count of accessor `index` (0 when the index is invalid: reading it reports that).
+uint64_t accessor_count(const tinygltf::Model& model, int index) {
+  return index >= 0 && size_t(index) < model.accessors.size() ? uint64_t(model.accessors[size_t(index)].count) : 0;
+}
+
+std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const std::string& path,
+                                          const Transform& to_world, std::vector<std::pair<Transform, int>>* cameras) {
+  std::vector<Primitive> out;
+  // Totals over every instance, counted in a first pass that reads nothing: one mesh under
+  // thousands of nodes, or one accessor in thousands of primitives, costs its size every time.
+  uint64_t total_vertices = 0, total_indices = 0, total_shapes = 0;
+  bool counting = true;
+  std::function<void(int, const Transform&, int)> visit = [&](int ni, const Transform& parent, int depth) {
+    if (ni < 0 || size_t(ni) >= model.nodes.size()) throw file_error(path, "invalid node hierarchy");
+    if (depth > limits::kNodeDepth)
+      throw file_error(path, "invalid node hierarchy: nesting exceeds the limit of " +
+                                 std::to_string(limits::kNodeDepth) + " levels (or a cycle)");
+    const auto& node = model.nodes[size_t(ni)];
+    Transform world = parent * node_local(node);
+    if (node.camera >= 0 && cameras && !counting) cameras->push_back({world, node.camera});
+    if (node.mesh >= 0) {
+      if (size_t(node.mesh) >= model.meshes.size()) throw file_error(path, "node references a missing mesh");
+      const auto& gm = model.meshes[size_t(node.mesh)];
+      for (size_t pi = 0; pi < gm.primitives.size(); ++pi) {
+        const auto& prim = gm.primitives[pi];
+        if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
+        auto pos_it = prim.attributes.find("POSITION");
+        if (pos_it == prim.attributes.end()) throw file_error(path, "primitive without POSITION");
+        if (counting) {
+          const uint64_t vertices = accessor_count(model, pos_it->second);
+          limits::add_to_total(path, "mesh instance count", total_shapes, 1, limits::kShapes);
+          limits::add_to_total(path, "total vertex count (all mesh instances)", total_vertices, vertices,
+                               limits::kSceneElements);
+          limits::add_to_total(path, "total triangle count (all mesh instances)", total_indices,
+                               prim.indices >= 0 ? accessor_count(model, prim.indices) / 3 : vertices / 3,
+                               limits::kSceneElements);
+          continue;
+        }
+        Primitive p;
+        std::vector<float> pos = read_floats(model, pos_it->second, 3, path);
+        for (size_t i = 0; i + 2 < pos.size(); i += 3)
+          p.mesh.positions.push_back(world.point({pos[i], pos[i + 1], pos[i + 2]}));
+        if (auto it = prim.attributes.find("NORMAL"); it != prim.attributes.end()) {
+          std::vector<float> nrm = read_floats(model, it->second, 3, path);
+          for (size_t i = 0; i + 2 < nrm.size(); i += 3)
+            p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
+        }
+        if (auto it = prim.attributes.find("TEXCOORD_0"); it != prim.attributes.end()) {
+          std::vector<float> uv = read_floats(model, it->second, 2, path);
+          for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
+        }
+        if (prim.indices >= 0) {
+          p.mesh.indices = read_indices(model, prim.indices, path);
+        } else {
+          for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) p.mesh.indices.push_back(i);
+        }
+        if ((!p.mesh.normals.empty() && p.mesh.normals.size() != p.mesh.positions.size()) ||
+            (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()))
+          throw file_error(path, "attribute counts disagree in mesh '" + gm.name + "'");
+        for (uint32_t i : p.mesh.indices)
+          if (i >= p.mesh.positions.size())
+            throw file_error(path, "triangle index out of range in mesh '" + gm.name + "'");
+        // glTF winding is counter-clockwise seen from the front, i.e. (p1−p0)×(p2−p0) is the front
+        // normal; a mirroring node transform reverses it.
+        const float det = world.m[0][0] * (world.m[1][1] * world.m[2][2] - world.m[1][2] * world.m[2][1]) -
+                          world.m[0][1] * (world.m[1][0] * world.m[2][2] - world.m[1][2] * world.m[2][0]) +
+                          world.m[0][2] * (world.m[1][0] * world.m[2][1] - world.m[1][1] * world.m[2][0]);
+        if (det < 0)
+          for (size_t t = 0; t + 2 < p.mesh.indices.size(); t += 3)
+            std::swap(p.mesh.indices[t + 1], p.mesh.indices[t + 2]);
+        p.material = prim.material;
+        p.name = (gm.name.empty() ? "mesh" + std::to_string(node.mesh) : gm.name) +
+                 (gm.primitives.size() > 1 ? "_" + std::to_string(pi) : "");
+        out.push_back(std::move(p));
+      }
+    }
+    for (int c : node.children) visit(c, world, depth + 1);
+  };
+  if (model.nodes.empty()) return out;
+  // glTF node graphs are forests: a node with two parents (a DAG) would be visited once per path
+  // to it, 2^depth times in the worst case, so it is rejected before any traversal.
+  std::vector<int> parent(model.nodes.size(), -1);
+  for (size_t n = 0; n < model.nodes.size(); ++n)
+    for (int c : model.nodes[n].children) {
+      if (c < 0 || size_t(c) >= model.nodes.size()) throw file_error(path, "invalid node hierarchy (child out of range)");
+      if (parent[size_t(c)] >= 0 || size_t(c) == n)
+        throw file_error(path, "invalid node hierarchy: node " + std::to_string(c) +
+                                   " has more than one parent (glTF requires a tree)");
+      parent[size_t(c)] = int(n);
+    }
+  int scene_index = model.defaultScene >= 0 ? model.defaultScene : 0;
+  std::vector<int> roots;
+  if (!model.scenes.empty()) {
+    if (size_t(scene_index) >= model.scenes.size()) throw file_error(path, "default scene out of range");
+    roots = model.scenes[size_t(scene_index)].nodes;
+  } else {
+    for (size_t n = 0; n < model.nodes.size(); ++n)
+      if (parent[n] < 0) roots.push_back(int(n));
+  }
+  std::set<int> seen_roots;
+  for (int n : roots) {
+    if (n < 0 || size_t(n) >= model.nodes.size()) throw file_error(path, "invalid node hierarchy (root out of range)");
+    if (parent[size_t(n)] >= 0 || !seen_roots.insert(n).second)
+      throw file_error(path, "invalid node hierarchy: root node " + std::to_string(n) + " has a parent or is listed twice");
+  }
+  // With one parent per node, the depth limit in `visit` also catches cycles.
+  for (int n : roots) visit(n, to_world, 0);
+  counting = false;
+  for (int n : roots) visit(n, to_world, 0);
+  return out;
+}
+
+// Names made unique with a suffix "_2", "_3", ...: the first free one, found in amortised constant
+// time per name (a file can instance one mesh 10^6 times; probing from "_2" each time was
+// quadratic).
+class UniqueNames {
+ public:
+  std::string make(const std::string& base) {
+    std::string n = base;
+    if (used_.count(n)) {
+      int& k = next_.try_emplace(base, 2).first->second;
+      for (;; ++k) {
+        n.assign(base).append("_").append(std::to_string(k));
+        if (!used_.count(n)) break;
+      }
+      ++k;
+    }
+    used_.insert(n);
+    return n;
+  }
+
+ private:
+  std::set<std::string> used_;
+  std::map<std::string, int> next_;
+};
+
+std::string sanitize(std::string name) {
+  for (auto& c : name)
+    if (c == '.' || c == ' ' || c == '=') c = '_';
+  return name;
+}
+
+}  // namespace
+
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world);
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path);
+
+// Every index in the file is checked where it is used; `.at()` backs that up, and an index that
+// still slips through becomes this one-line error instead of an internal one.
+template <class F>
+auto guarded(const std::string& path, F&& load) {
+  try {
+    return load();
+  } catch (const std::out_of_range&) {
+    throw file_error(path, "invalid glTF: an index (texture, image, sampler, camera or buffer) is out of range");
+  }
+}
+
+std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world) {
+  return guarded(path, [&] { return load_gltf_meshes_unguarded(path, to_world); });
+}
+
+std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
+  return guarded(path, [&] { return load_gltf_scene_unguarded(path); });
+}
+
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world) {
+  tinygltf::Model model = read_model(path);
+  std::vector<Mesh> meshes;
+  for (auto& p : collect_primitives(model, path, to_world, nullptr)) meshes.push_back(std::move(p.mesh));
+  return meshes;
+}
+
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
+  tinygltf::Model model = read_model(path);
+  auto scene = std::make_unique<Scene>();
+  scene->source = path;
+  std::vector<std::pair<Transform, int>> cameras;
+  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras);
+  if (prims.empty()) throw file_error(path, "no triangle meshes in the default scene");
+  // Each material used gets its own copy of its base colour texture (3 floats per texel): many
+  // materials naming one small, highly compressed image must not add up past the limit, so the
+  // total is counted from the decoded sizes before any parameter is built.
+  {
+    uint64_t planned = 0;
+    std::set<int> counted;
+    for (const auto& p : prims) {
+      if (p.material < 0 || size_t(p.material) >= model.materials.size() || !counted.insert(p.material).second)
+        continue;
+      const int t = model.materials[size_t(p.material)].pbrMetallicRoughness.baseColorTexture.index;
+      if (t < 0 || size_t(t) >= model.textures.size()) continue;
+      const int src = model.textures[size_t(t)].source;
+      if (src < 0 || size_t(src) >= model.images.size()) continue;
+      const auto& img = model.images[size_t(src)];
+      limits::add_to_total(
+          path, "total parameter size (texels of every material's texture)", planned,
+          limits::checked_product(path, "texture size",
+                                  {uint64_t(std::max(0, img.width)), uint64_t(std::max(0, img.height)), 3},
+                                  limits::kParamValues),
+          limits::kParamValues);
+    }
+  }
+
+  // Materials, created on first use; names come from the file (made unique and '.'-free).
+  std::map<int, int> material_of;
+  UniqueNames material_names;
+  auto unique = [&](const std::string& n) { return material_names.make(sanitize(n)); };
+  auto add_param = [&](const std::string& name, std::vector<int> shape, std::vector<float> value, float lo, float hi) {
+    Param p;
+    p.name = name;
+    p.shape = std::move(shape);
+    p.value = std::move(value);
+    p.lower = lo;
+    p.upper = hi;
+    validate_param(p, path);
+    TextureSlot s;
+    s.param = scene->params.add(std::move(p), path);
+    return s;
+  };
+  auto material_for = [&](int gi) {
+    if (auto it = material_of.find(gi); it != material_of.end()) return it->second;
+    Material m;
+    tinygltf::Material gm;
+    if (gi >= 0) {
+      if (size_t(gi) >= model.materials.size()) throw file_error(path, "primitive references a missing material");
+      gm = model.materials[size_t(gi)];
+    }
+    m.name = unique(gm.name.empty() ? "material" + std::to_string(gi < 0 ? 0 : gi) : gm.name);
+    m.two_sided = true;  // glTF's doubleSided=false is a culling hint; shading stays two-sided
+    const auto& pbr = gm.pbrMetallicRoughness;
+    if (!(pbr.roughnessFactor >= 0 && pbr.roughnessFactor <= 1) ||
+        !(pbr.metallicFactor >= 0 && pbr.metallicFactor <= 1))
+      throw file_error(path, "material '" + gm.name + "': roughnessFactor and metallicFactor must be in [0, 1]");
+    if (pbr.baseColorFactor.size() < 3)
+      throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
+    std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
+    const bool metal = pbr.metallicFactor >= 0.5;
+    m.type = metal ? BsdfType::RoughConductor : BsdfType::RoughPlastic;
+    float alpha = float(pbr.roughnessFactor * pbr.roughnessFactor);
+    m.roughness = add_param(m.name + ".roughness", {1}, {alpha}, 0.f, 4.f);
+    TextureSlot color;
+    const std::string key = metal ? ".specular" : ".albedo";
+    if (pbr.baseColorTexture.index >= 0) {
+      if (size_t(pbr.baseColorTexture.index) >= model.textures.size())
+        throw file_error(path, "material '" + gm.name + "' references a missing texture");
+      const auto& tex = model.textures[size_t(pbr.baseColorTexture.index)];
+      if (tex.source < 0 || size_t(tex.source) >= model.images.size())
+        throw file_error(path, "texture " + std::to_string(pbr.baseColorTexture.index) + " references a missing image");
+      const auto& img = model.images[size_t(tex.source)];
+      if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
+        throw file_error(path,
+                         "base colour texture '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
+      limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width),
+                               uint64_t(img.height));
+      if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
+        throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
+      std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
+      for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
+        for (int c = 0; c < 3; ++c)
+          v[i * 3 + size_t(c)] = std::min(
+              1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
+      color = add_param(m.name + key, {img.height, img.width, 3}, std::move(v), 0.f, 1.f);
+      color.bitmap = true;
+      if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
+        throw file_error(path, "texture references a missing sampler");
+      int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
+      color.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
+    } else {
+      color = add_param(m.name + key, {3}, base, 0.f, 1.f);
+    }
+    (metal ? m.specular : m.albedo) = color;
+    scene->materials.push_back(std::move(m));
+    return material_of[gi] = int(scene->materials.size() - 1);
+  };
+
+  UniqueNames shape_names;
+  for (auto& p : prims) {
+    Mesh mesh = std::move(p.mesh);
+    mesh.name = shape_names.make(sanitize(p.name));
+    mesh.material = material_for(p.material);
+    finalize_mesh(mesh, Transform(), false, path + ": mesh '" + mesh.name + "'");
+    if (p.material >= 0) {
+      const auto& gm = model.materials[size_t(p.material)];
+      double strength = 1.0;
+      if (auto it = gm.extensions.find("KHR_materials_emissive_strength");
+          it != gm.extensions.end() && it->second.Has("emissiveStrength"))
+        strength = it->second.Get("emissiveStrength").GetNumberAsDouble();
+      std::vector<float> e;
+      for (size_t c = 0; c < 3 && c < gm.emissiveFactor.size(); ++c)
+        e.push_back(float(gm.emissiveFactor[c] * strength));
+      if (e.size() == 3 && (e[0] > 0 || e[1] > 0 || e[2] > 0)) {
+        AreaEmitter em;
+        em.mesh = int(scene->meshes.size());
+        em.radiance = add_param(mesh.name + ".radiance", {3}, e, 0.f, 1e30f);
+        mesh.emitter = int(scene->area_emitters.size());
+        scene->area_emitters.push_back(std::move(em));
+      }
+    }
+    scene->meshes.push_back(std::move(mesh));
+  }
+
+  // Cameras: every perspective camera in the file, else one framing the bounding box.
+  for (auto& [xf, ci] : cameras) {
+    if (ci < 0 || size_t(ci) >= model.cameras.size()) throw file_error(path, "node references a missing camera");
+    const auto& gc = model.cameras[size_t(ci)];
+    if (gc.type != "perspective") continue;
+    if (!(gc.perspective.yfov > 0 && gc.perspective.yfov < M_PI))
+      throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π)");
+    if (gc.perspective.aspectRatio < 0)
+      throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
+    Camera c;
+    c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
+    c.fov_axis_x = false;
+    c.fov_degrees = float(gc.perspective.yfov * 180.0 / M_PI);
+    double aspect = gc.perspective.aspectRatio > 0 ? gc.perspective.aspectRatio : 1.0;
+    c.width = 512;
+    const double height = std::round(512.0 / aspect);
+    limits::check_image_size(path + ": camera " + std::to_string(ci), 512, height > 1e12 ? uint64_t(1e12) : uint64_t(std::max(1.0, height)));
+    c.height = int(std::max(1.0, height));
+    c.origin = xf.point({0, 0, 0});
+    c.target = c.origin + normalize(xf.vector({0, 0, -1}));
+    c.up = normalize(xf.vector({0, 1, 0}));
+    c.near_clip = float(std::max(1e-4, gc.perspective.znear));
+    scene->cameras.push_back(c);
+  }
+  if (scene->cameras.empty()) {
+    Vec3f lo(1e30f), hi(-1e30f);
+    for (const auto& m : scene->meshes)
+      for (size_t i = 0; i < m.vertex_count(); ++i)
+        for (int k = 0; k < 3; ++k)
+          lo[k] = std::min(lo[k], m.positions[i][k]), hi[k] = std::max(hi[k], m.positions[i][k]);
+    Vec3f center = (lo + hi) * 0.5f;
+    float radius = 0.5f * length(hi - lo);
+    Camera c;
+    c.name = "default";
+    c.fov_degrees = 40.f;
+    c.target = center;
+    c.origin =
+        center + Vec3f(0, 0.3f, 1.f) * (radius / std::tan(20.f * kPi / 180.f) / length(Vec3f(0, 0.3f, 1.f)) * 1.1f);
+    scene->cameras.push_back(c);
+  }
+  // A default sky: white when nothing emits, dim otherwise so the emitters dominate.
+  scene->environment.present = true;
+  scene->environment.is_map = false;
+  float sky = scene->area_emitters.empty() ? 1.f : 0.1f;
+  scene->environment.param = add_param("environment.radiance", {3}, {sky, sky, sky}, 0.f, 1e30f).param;
+  scene->prepare();
+  return scene;
+}
+
+}  // namespace bl

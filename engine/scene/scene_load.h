@@ -1,0 +1,32 @@
+#pragma once
+// Scene loading entry points. Every error is an InputError with one line naming the file.
+#include <string>
+#include <vector>
+
+#include "engine/scene/scene.h"
+
+namespace bl {
+
+// Loads a backlight JSON scene, or a .gltf/.glb file rendered directly. Returns a prepared scene.
+std::unique_ptr<Scene> load_scene(const std::string& path);
+std::unique_ptr<Scene> load_json_scene(const std::string& path);
+std::unique_ptr<Scene> load_gltf_scene(const std::string& path);
+
+// Triangle meshes of every primitive of a glTF file's default scene, node transforms applied,
+// then `to_world`. Used by the `gltf` shape type.
+std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world);
+
+// Finishes a mesh built in object space: transforms to world, fixes winding for mirroring
+// transforms, optionally flips normals, pads positions for Embree and checks it.
+void finalize_mesh(Mesh& mesh, const Transform& to_world, bool flip_normals, const std::string& where);
+
+// Builds the built-in shapes in object space.
+Mesh make_rectangle();
+Mesh make_cube();
+
+// Applies `--set NAME=FILE|v1,v2,...`; errors name the parameter and the problem.
+void apply_override(Scene& scene, const std::string& assignment);
+// Checks a parameter's values: finite and inside [lower, upper].
+void validate_param(const Param& p, const std::string& where);
+
+}  // namespace bl

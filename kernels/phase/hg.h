@@ -1,0 +1,69 @@
+#pragma once
+// Henyey–Greenstein phase function (Henyey and Greenstein 1941).
+// | parameter  | shape | range     | differentiable |
+// | <medium>.g | [1]   | (−1, 1)   | yes (sampling depends on it; it is detached) |
+// With μ = wi·wo (see phase.h: wi = −d_in, so μ = −cos θ for θ the angle between the
+// propagation directions d_in and wo):
+//   p(wi, wo) = (1 − g²) / (4π (1 + g² + 2gμ)^{3/2})
+// g > 0 favours wo = d_in, i.e. forward scattering; g = 0 is isotropic, 1/(4π).
+#include <algorithm>
+#include <cmath>
+
+#include "engine/core/dual.h"
+#include "kernels/phase/phase.h"
+
+namespace bl {
+
+// |g| is kept below 1: at |g| = 1 the function is a delta and its normalisation breaks down.
+inline constexpr float kHgMaxAbsG = 0.999f;
+
+template <class T>
+struct HgParams {
+  T g;
+};
+
+template <class T>
+T hg_clamp_g(const T& g) {
+  if (g > kHgMaxAbsG) return T(kHgMaxAbsG);
+  if (g < -kHgMaxAbsG) return T(-kHgMaxAbsG);
+  return g;
+}
+
+template <class T>
+T hg_eval(const HgParams<T>& p, const Vec3f& wi, const Vec3f& wo) {
+  const T g = hg_clamp_g(p.g);
+  const float mu = std::clamp(dot(wi, wo), -1.f, 1.f);
+  const T denom = T(1.f) + g * g + 2.f * mu * g;
+  return (T(1.f) - g * g) / (4.f * kPi * denom * sqrt(denom));
+}
+
+// Exact inversion of the CDF of cos θ = d_in·wo (θ between the propagation directions):
+// cos θ = (1 + g² − ((1 − g²)/(1 − g + 2gξ))²) / (2g), uniform in [−1, 1] as g → 0.
+inline PhaseSample hg_sample(const HgParams<float>& p, const Vec3f& wi, Vec2f u) {
+  const float g = hg_clamp_g(p.g);
+  float cos_theta;
+  if (std::abs(g) < 1e-3f) {
+    cos_theta = 1.f - 2.f * u.x;
+  } else {
+    const float s = (1.f - g * g) / (1.f - g + 2.f * g * u.x);
+    cos_theta = (1.f + g * g - s * s) / (2.f * g);
+  }
+  cos_theta = std::clamp(cos_theta, -1.f, 1.f);
+  const float sin_theta = std::sqrt(std::max(0.f, 1.f - cos_theta * cos_theta));
+  const float phi = 2.f * kPi * u.y;
+  const Frame frame(-wi);  // around the propagation direction d_in
+  const Vec3f wo = normalize(frame.to_world({sin_theta * std::cos(phi), sin_theta * std::sin(phi), cos_theta}));
+  return {wo, hg_eval(p, wi, wo)};
+}
+
+inline float hg_pdf(const HgParams<float>& p, const Vec3f& wi, const Vec3f& wo) { return hg_eval(p, wi, wo); }
+
+// adjoint · ∂p/∂g, on a forward dual through hg_eval itself. Outside (−0.999, 0.999) the clamp
+// holds g fixed and the derivative is 0, as for eval.
+inline HgParams<float> hg_backprop(const HgParams<float>& p, const Vec3f& wi, const Vec3f& wo, float adjoint) {
+  using D = Dual<float, 1>;
+  const D value = hg_eval(HgParams<D>{D::variable(p.g, 0)}, wi, wo);
+  return {adjoint * value.d[0]};
+}
+
+}  // namespace bl

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# backlight optimize is crash-safe: a process killed anywhere (kill -9, or at each step of the
+# checkpoint swap through the BACKLIGHT_CRASH_AT fault-injection points) leaves a checkpoint that
+# --resume finishes from, and the finished run's parameters are bitwise those of a run that was
+# never interrupted (one thread: the sums are then in a fixed order). Stale temporaries of
+# killed processes are removed when a run starts. Usage: test_optimize_crash.sh BACKLIGHT_BIN
+set -u
+bin="$1"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+dir="$(mktemp -d)"
+trap 'rm -rf "$dir"' EXIT
+cd "$dir"
+fail() { echo "FAIL: $*"; exit 1; }
+. "$here/floor_scene.sh"
+write_floor_scene 16
+iterations=16
+job() {  # job OUTPUT_DIR > config
+  cat <<JSON
+{"scene": "scene.json", "output": "$1",
+ "parameters": {"floor.albedo": {"lr": 0.02, "bounds": [0, 1]}},
+ "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}, "spp": 8}},
+ "spp": 8, "iterations": $iterations, "checkpoint_every": 2, "snapshot_every": 4}
+JSON
+}
+job ref > ref.json
+job out > out.json
+"$bin" optimize ref.json --threads 1 --quiet 2> ref.log || fail "uninterrupted run failed: $(cat ref.log)"
+
+# resume_until_done: resumes (or starts) until summary.json exists; at most 20 attempts.
+run_once() {  # run_once [ENV...]: one start or resume of the interrupted job
+  local args=(optimize out.json --threads 1 --quiet)
+  [ -f out/checkpoint/state.json ] || [ -f out/checkpoint.old/state.json ] && args+=(--resume out)
+  env "$@" "$bin" "${args[@]}" 2>> out.log
+}
+# 1. Crash at every point of the checkpoint swap, in turn, each on a later checkpoint.
+for point in checkpoint-written old-removed final-moved tmp-renamed checkpoint-written final-moved \
+             checkpoint-written tmp-renamed; do
+  had=0
+  [ -f out/checkpoint/state.json ] || [ -f out/checkpoint.old/state.json ] && had=1
+  run_once BACKLIGHT_CRASH_AT=$point
+  code=$?
+  [ $code -eq 137 ] || fail "crash at $point: exit $code, expected the injected 137 ($(tail -n 2 out.log))"
+  [ $had -eq 0 ] || [ -f out/checkpoint/state.json ] || [ -f out/checkpoint.old/state.json ] ||
+    fail "after a crash at $point no complete checkpoint is left: $(ls out)"
+done
+# 2. Plain kill -9 at arbitrary moments, with temporaries of dead processes planted.
+for delay in 0.3 0.7 0.5; do
+  mkdir -p out/snapshots
+  : > out/.loss.tmp999999.csv
+  : > out/snapshots/.floor.albedo_00004.tmp999998.png
+  run_once & pid=$!
+  sleep "$delay"
+  kill -9 $pid 2>/dev/null
+  wait $pid 2>/dev/null
+done
+# One run to the end whatever state the kills left (a resume of a finished run finishes at once;
+# a kill may have come before a run reached its clean-up), then more if a kill left it unfinished.
+run_once || true
+for _ in $(seq 1 20); do
+  [ -f out/summary.json ] && break
+  run_once || true
+done
+[ -f out/summary.json ] || fail "the run did not finish after repeated resumes: $(tail -n 3 out.log)"
+cmp -s ref/checkpoint/floor.albedo.value out/checkpoint/floor.albedo.value ||
+  fail "resumed parameters differ from the uninterrupted run's"
+rows=$(($(wc -l < out/loss.csv) - 1))
+[ "$rows" -eq $iterations ] || fail "loss.csv has $rows rows, expected $iterations"
+stale=$(find out -name '.*.tmp*')
+[ -z "$stale" ] || fail "temporaries left behind: $stale"
+[ ! -e out/checkpoint.tmp ] && [ ! -e out/checkpoint.old ] || fail "checkpoint.tmp/.old left behind: $(ls out)"
+echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result"

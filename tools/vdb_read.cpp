@@ -1,0 +1,55 @@
+// backlight-vdb-read FILE GRID OUT.vol MEMORY_MB — the OpenVDB reader process behind read_vdb
+// (engine/scene/openvdb_io.h). Parses FILE with OpenVDB under an address-space limit of
+// MEMORY_MB, writes the dense grid as OUT.vol, and exits 0; on a bad file it prints the one-line
+// error "<file>: <problem>" on stderr and exits 2. Not meant to be run by hand.
+#include <malloc.h>
+#include <sys/resource.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <exception>
+#include <new>
+#include <string>
+
+#include <tbb/global_control.h>
+
+#include "engine/core/errors.h"
+#include "engine/scene/openvdb_reader.h"
+#include "engine/scene/volume_io.h"
+
+int main(int argc, char** argv) {
+  if (argc != 5) {
+    std::fprintf(stderr, "usage: backlight-vdb-read FILE GRID OUT.vol MEMORY_MB (used by backlight)\n");
+    return 64;
+  }
+  const std::string path = argv[1];
+  char* end = nullptr;
+  const unsigned long long memory_mb = std::strtoull(argv[4], &end, 10);
+  if (*end != '\0' || memory_mb == 0) return 64;
+  // The address-space limit must not be eaten by reservations: one malloc arena reserves 64 MB
+  // per thread, so arenas and OpenVDB's TBB parallelism (bounding boxes, tree walks) stay small.
+  mallopt(M_ARENA_MAX, 2);
+  tbb::global_control threads(tbb::global_control::max_allowed_parallelism, 2);
+  const rlimit no_core{0, 0};
+  setrlimit(RLIMIT_CORE, &no_core);
+  // ASan reserves terabytes of address space for its shadow: it gets ASAN_OPTIONS limits instead.
+  if (!bl::kAddressSanitizer) {
+    const rlimit as{rlim_t(memory_mb) << 20, rlim_t(memory_mb) << 20};
+    setrlimit(RLIMIT_AS, &as);
+  }
+  try {
+    const bl::VolumeGrid grid = bl::read_vdb_in_process(path, argv[2]);
+    bl::write_vol(argv[3], grid);
+    return 0;
+  } catch (const bl::InputError& e) {
+    std::fprintf(stderr, "%s\n", e.what());
+  } catch (const std::bad_alloc&) {
+    std::fprintf(stderr,
+                 "%s: cannot read OpenVDB file (needs more memory than the reader's limit of %llu MB, set by "
+                 "BACKLIGHT_VDB_MEMORY_MB)\n",
+                 path.c_str(), memory_mb);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "%s: cannot read OpenVDB file (%s)\n", path.c_str(), e.what());
+  }
+  return 2;
+}
