@@ -1,5 +1,6 @@
 #include "engine/io/image_io.h"
 
+#include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <unistd.h>
 
@@ -148,31 +149,118 @@ void check_exr_header(const std::string& path) {
   }
 }
 
-// libpng allocates a chunk at the length the file declares (up to 2 GB) inside ImageInput::open,
-// before we see the image's size. Walk the chunk list first (headers only): every chunk must fit
-// in the file, and the IHDR's width and height must be within the limits.
-void check_png_chunks(const std::string& path) {
-  FileProbe file(path);
-  static const char signature[8] = {char(0x89), 'P', 'N', 'G', '\r', '\n', char(0x1a), '\n'};
-  if (file.read(0, 8) != std::string(signature, 8)) return;  // not PNG
-  auto be32 = [](const std::string& b, size_t at) {
-    return uint32_t(uint8_t(b[at])) << 24 | uint32_t(uint8_t(b[at + 1])) << 16 | uint32_t(uint8_t(b[at + 2])) << 8 |
-           uint32_t(uint8_t(b[at + 3]));
-  };
+// The whole file, for the readers below that decode from memory.
+std::vector<unsigned char> read_whole_file(const std::string& path) {
+  std::error_code ec;
+  const uint64_t size = fs::file_size(path, ec);
+  if (ec) throw file_error(path, "cannot read");
+  limits::require_at_most(path, "file size", size, limits::kFileBytes);
+  std::vector<unsigned char> bytes(size);
+  std::ifstream f(path, std::ios::binary);
+  if (!f.read(reinterpret_cast<char*>(bytes.data()), std::streamsize(size)) || uint64_t(f.gcount()) != size)
+    throw file_error(path, "cannot read");
+  return bytes;
+}
+
+uint32_t be32(const unsigned char* b) {
+  return uint32_t(b[0]) << 24 | uint32_t(b[1]) << 16 | uint32_t(b[2]) << 8 | uint32_t(b[3]);
+}
+
+// PNG, walked chunk by chunk (headers only) before libpng sees it. libpng allocates a chunk at the
+// length the file declares (up to 2 GB) inside ImageInput::open, before we see the image's size:
+// every chunk must fit in the file, and the IHDR's width and height must be within the limits.
+// The copy handed to OpenImageIO keeps the critical chunks and the ancillary ones that affect
+// decoded pixels (tRNS; gAMA, sRGB, cHRM and sBIT, which OpenImageIO's alpha handling reads) and
+// drops the rest (text, XMP, Exif, ICC profiles, times): metadata backlight never uses, parsed by
+// code of OpenImageIO that was not written for hostile files.
+std::vector<unsigned char> png_without_metadata(const std::string& path, const std::vector<unsigned char>& in) {
+  if (in.size() < 8) throw file_error(path, "corrupt image (truncated PNG signature)");
+  std::vector<unsigned char> out(in.begin(), in.begin() + 8);  // signature (checked by image_format)
+  const uint64_t n = in.size();
   uint64_t pos = 8;
-  while (file.size() >= pos + 12) {
-    const std::string header = file.read(pos, 16);
-    if (header.size() < 8) return;
-    const uint32_t length = be32(header, 0);
-    const std::string type = header.substr(4, 4);
-    if (uint64_t(length) > file.size() - pos - 12)
+  bool ended = false;
+  while (n >= pos + 12) {
+    const uint32_t length = be32(&in[pos]);
+    const std::string type(reinterpret_cast<const char*>(&in[pos + 4]), 4);
+    if (uint64_t(length) > n - pos - 12)
       throw file_error(path, "corrupt image (PNG chunk '" + type + "' claims " + std::to_string(length) +
-                                 " bytes; the file has " + std::to_string(file.size()) + ")");
-    if (type == "IHDR" && length >= 8 && header.size() >= 16)
-      limits::check_image_size(path, be32(header, 8), be32(header, 12));
-    if (type == "IEND") return;
-    pos += 12 + uint64_t(length);
+                                 " bytes; the file has " + std::to_string(n) + ")");
+    if (type == "IHDR" && length >= 8) limits::check_image_size(path, be32(&in[pos + 8]), be32(&in[pos + 12]));
+    const bool critical = (in[pos + 4] & 0x20) == 0;
+    const bool keep =
+        critical || type == "tRNS" || type == "gAMA" || type == "sRGB" || type == "cHRM" || type == "sBIT";
+    const uint64_t end = pos + 12 + uint64_t(length);
+    if (keep) out.insert(out.end(), in.begin() + std::ptrdiff_t(pos), in.begin() + std::ptrdiff_t(end));
+    pos = end;
+    if (type == "IEND") {
+      ended = true;
+      break;
+    }
   }
+  // A truncated file keeps its partial tail: libpng reports the truncation.
+  if (!ended) out.insert(out.end(), in.begin() + std::ptrdiff_t(pos), in.end());
+  return out;
+}
+
+// JPEG, walked marker by marker the way libjpeg finds markers (bytes other than 0xFF skipped,
+// 0xFF fill bytes, FF 00 and restart markers inside entropy-coded data). The copy handed to
+// OpenImageIO drops APP1..APP13, APP15 and COM segments: OpenImageIO 2.4 decodes Exif, XMP, IPTC
+// and ICC data from them with lengths taken from the data itself (fuzz_image found a heap overread
+// in its IPTC decoder: an APP13 record claiming more bytes than its segment holds). APP0 (JFIF)
+// and APP14 (Adobe colour transform) stay: libjpeg needs them to decode the pixels.
+std::vector<unsigned char> jpeg_without_metadata(const std::string& path, const std::vector<unsigned char>& in) {
+  const size_t n = in.size();
+  if (n < 2) throw file_error(path, "corrupt image (truncated JPEG)");
+  std::vector<unsigned char> out(in.begin(), in.begin() + 2);  // SOI (checked by image_format)
+  size_t pos = 2;
+  while (pos < n) {
+    // Data between markers (entropy-coded scans, or stray bytes libjpeg skips) is copied as is.
+    size_t next = pos;
+    for (;;) {
+      while (next < n && in[next] != 0xFF) ++next;
+      if (next + 1 >= n) break;
+      size_t m = next + 1;
+      while (m < n && in[m] == 0xFF) ++m;  // fill bytes
+      if (m >= n) {
+        next = n;
+        break;
+      }
+      const unsigned char code = in[m];
+      if (code == 0x00 || (code >= 0xD0 && code <= 0xD7) || code == 0x01) {
+        next = m + 1;  // stuffed zero, restart or TEM marker: part of the data stream
+        continue;
+      }
+      break;
+    }
+    out.insert(out.end(), in.begin() + std::ptrdiff_t(pos), in.begin() + std::ptrdiff_t(std::min(next, n)));
+    if (next + 1 >= n) break;
+    size_t m = next + 1;
+    while (m < n && in[m] == 0xFF) ++m;
+    const unsigned char code = in[m];
+    if (code == 0xD8 || code == 0xD9) {  // SOI (libjpeg refuses a second one) or EOI
+      out.push_back(0xFF);
+      out.push_back(code);
+      pos = m + 1;
+      if (code == 0xD9) break;
+      continue;
+    }
+    if (m + 2 >= n) {  // truncated: libjpeg reports it
+      out.insert(out.end(), in.begin() + std::ptrdiff_t(next), in.end());
+      break;
+    }
+    const size_t length = size_t(in[m + 1]) << 8 | size_t(in[m + 2]);
+    if (length < 2)
+      throw file_error(path, "corrupt image (JPEG segment at byte " + std::to_string(next) + " has length " +
+                                 std::to_string(length) + ")");
+    const size_t end = std::min(n, m + 1 + length);
+    const bool metadata = (code >= 0xE1 && code <= 0xEF && code != 0xEE) || code == 0xFE;
+    if (!metadata) {
+      out.push_back(0xFF);
+      out.insert(out.end(), in.begin() + std::ptrdiff_t(m), in.begin() + std::ptrdiff_t(end));
+    }
+    pos = end;
+  }
+  return out;
 }
 
 // The OpenImageIO reader for a file, chosen by its first bytes. Only these formats are read:
@@ -188,8 +276,7 @@ const char* image_format(const std::string& path) {
   if (starts("\xff\xd8\xff", 3)) return "jpeg";
   if (starts("#?", 2)) return "hdr";                     // Radiance: "#?RADIANCE" or "#?RGBE"
   if (starts("PF", 2) || starts("Pf", 2)) return "pnm";  // PFM (OpenImageIO's PNM reader)
-  if (starts("II*\0", 4) || starts("MM\0*", 4)) return "tiff";
-  throw file_error(path, "unsupported image format (expected PNG, OpenEXR, JPEG, Radiance HDR, PFM or TIFF)");
+  throw file_error(path, "unsupported image format (expected PNG, OpenEXR, JPEG, Radiance HDR or PFM)");
 }
 }  // namespace
 
@@ -206,13 +293,19 @@ Image read_image(const std::string& path, bool decode_srgb) {
 Image read_image_unguarded(const std::string& path, bool decode_srgb) {
   require_input_file(path);
   check_exr_header(path);
-  check_png_chunks(path);
   // Readers that honour it refuse images beyond this size before allocating (OpenImageIO 2.4).
   static const bool oiio_limits = OIIO::attribute("limits:imagesize_MB", int(limits::kImagePixels * 12 >> 20));
   (void)oiio_limits;
-  const char* format = image_format(path);
+  const std::string format = image_format(path);
+  // PNG and JPEG are decoded from a copy in memory without their metadata (see above).
+  std::vector<unsigned char> bytes;
+  if (format == "png") bytes = png_without_metadata(path, read_whole_file(path));
+  if (format == "jpeg") bytes = jpeg_without_metadata(path, read_whole_file(path));
+  Filesystem::IOMemReader memory(bytes.data(), bytes.size());
   StdioStderrSilencer quiet;
   auto in = ImageInput::create(format);
+  if (in && !bytes.empty() && !in->set_ioproxy(&memory))
+    throw file_error(path, "cannot read image (no in-memory reader for " + format + ")");
   if (in) {
     ImageSpec opened;
     if (!in->open(path, opened)) {
