@@ -208,6 +208,11 @@ Config parse_config(const std::string& path) {
       a.decay_every = int(d.number("every", a.decay == "step" ? 50 : 0, 0, 1e7));
       d.finish();
     }
+    if (p.has("moments")) {
+      const std::string m = p.string("moments");
+      if (m != "float32" && m != "bfloat16") p.fail_at("moments", "expected \"float32\" or \"bfloat16\"");
+      a.bf16_moments = m == "bfloat16";
+    }
     op.adam = Adam(a);
     if (const json* init = p.find("init")) op.init = *init;
     if (const json* st = p.find("schedule")) {
@@ -346,19 +351,22 @@ Image param_image(const Param& p) {
   return img;
 }
 
-void write_floats(const std::string& path, const std::vector<float>& v) {
-  write_bytes_atomic(path, v.data(), v.size() * sizeof(float));
+template <class T>
+void write_floats(const std::string& path, const std::vector<T>& v) {
+  write_bytes_atomic(path, v.data(), v.size() * sizeof(T));
 }
 
-std::vector<float> read_floats(const std::string& path, size_t count) {
+// Floats (or bfloat16 bit patterns, T = uint16_t) of a checkpoint file.
+template <class T = float>
+std::vector<T> read_floats(const std::string& path, size_t count) {
   // The size is checked against the file before allocating: a checkpoint's recorded shape is input.
   std::error_code ec;
   const auto bytes = fs::file_size(path, ec);
-  if (ec || count > bytes / sizeof(float) || bytes != count * sizeof(float))
+  if (ec || count > bytes / sizeof(T) || bytes != count * sizeof(T))
     throw file_error(path, "checkpoint file is truncated or has the wrong size");
   std::ifstream f(path, std::ios::binary);
-  std::vector<float> v(count);
-  if (!f.read(reinterpret_cast<char*>(v.data()), std::streamsize(count * sizeof(float))) || f.peek() != EOF)
+  std::vector<T> v(count);
+  if (!f.read(reinterpret_cast<char*>(v.data()), std::streamsize(count * sizeof(T))) || f.peek() != EOF)
     throw file_error(path, "checkpoint file is truncated or has the wrong size");
   return v;
 }
@@ -673,11 +681,19 @@ class Job {
     state["log"] = log;
     for (const auto& p : c_.params) {
       const Param& param = scene_->params[p.handle];
-      state["parameters"][p.name] = {
-          {"shape", param.shape}, {"adam_t", p.adam.steps()}, {"adam_decay_t", p.adam.decay_steps()}};
+      const bool half = p.adam.settings().bf16_moments;
+      state["parameters"][p.name] = {{"shape", param.shape},
+                                     {"adam_t", p.adam.steps()},
+                                     {"adam_decay_t", p.adam.decay_steps()},
+                                     {"moments", half ? "bfloat16" : "float32"}};
       write_floats(tmp + "/" + p.name + ".value", param.value);
-      write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m);
-      write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v);
+      if (half) {
+        write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m16);
+        write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v16);
+      } else {
+        write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m);
+        write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v);
+      }
     }
     // state.json is written last: a checkpoint directory is complete exactly when it has one.
     write_text_atomic(tmp + "/state.json", state.dump(1));
@@ -731,8 +747,17 @@ class Job {
         for (int d : param.shape) size *= size_t(d);
         param.value = read_floats(dir + "/" + p.name + ".value", size);
         param.grad.assign(size, 0.f);
-        p.adam.m = read_floats(dir + "/" + p.name + ".adam_m", size);
-        p.adam.v = read_floats(dir + "/" + p.name + ".adam_v", size);
+        const bool half = p.adam.settings().bf16_moments;
+        if (s.value("moments", std::string("float32")) != (half ? "bfloat16" : "float32"))
+          throw file_error(dir + "/state.json",
+                           "checkpoint moments of '" + p.name + "' are not in this config's precision (\"moments\")");
+        if (half) {
+          p.adam.m16 = read_floats<uint16_t>(dir + "/" + p.name + ".adam_m", size);
+          p.adam.v16 = read_floats<uint16_t>(dir + "/" + p.name + ".adam_v", size);
+        } else {
+          p.adam.m = read_floats(dir + "/" + p.name + ".adam_m", size);
+          p.adam.v = read_floats(dir + "/" + p.name + ".adam_v", size);
+        }
         p.adam.set_state(s.at("adam_t").get<int>(), s.at("adam_decay_t").get<int>());
       }
       for (const auto& r : state.at("log"))

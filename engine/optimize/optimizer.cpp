@@ -3,11 +3,19 @@
 #include <algorithm>
 #include <cmath>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 namespace bl {
 
 void Adam::reset(size_t size) {
-  m.assign(size, 0.f);
-  v.assign(size, 0.f);
+  if (s_.bf16_moments) {
+    m16.assign(size, 0);
+    v16.assign(size, 0);
+  } else {
+    m.assign(size, 0.f);
+    v.assign(size, 0.f);
+  }
   t_ = 0;
 }
 
@@ -18,22 +26,50 @@ double Adam::current_learning_rate() const {
   return s_.learning_rate;
 }
 
+namespace {
+// 32 well-mixed bits of a 64-bit key (splitmix64's finaliser): the stochastic-rounding bits of
+// one element at one step, the same for every thread count and after a resume.
+uint32_t mix32(uint64_t x) {
+  x ^= x >> 33;
+  x *= 0xff51afd7ed558ccdull;
+  x ^= x >> 33;
+  x *= 0xc4ceb9fe1a85ec53ull;
+  x ^= x >> 33;
+  return uint32_t(x);
+}
+}  // namespace
+
 void Adam::step(std::vector<float>& value, const std::vector<float>& gradient) {
-  if (m.size() != value.size()) reset(value.size());
+  if (state_size() != value.size()) reset(value.size());
   const double lr = current_learning_rate();
   ++t_;
   ++global_t_;
   const double correction1 = 1.0 - std::pow(s_.beta1, double(t_));
   const double correction2 = 1.0 - std::pow(s_.beta2, double(t_));
-  for (size_t i = 0; i < value.size(); ++i) {
-    const double g = gradient[i];
-    const double mi = s_.beta1 * m[i] + (1.0 - s_.beta1) * g;
-    const double vi = s_.beta2 * v[i] + (1.0 - s_.beta2) * g * g;
-    m[i] = float(mi);
-    v[i] = float(vi);
-    const double update = lr * (mi / correction1) / (std::sqrt(vi / correction2) + s_.epsilon);
-    value[i] = std::clamp(float(double(value[i]) - update), s_.lower, s_.upper);
-  }
+  const bool half = s_.bf16_moments;
+  const uint64_t step_key = uint64_t(uint32_t(global_t_)) << 32;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, value.size(), size_t(1) << 14), [&](const auto& range) {
+    for (size_t i = range.begin(); i != range.end(); ++i) {
+      const double g = gradient[i];
+      const double m_old = half ? bf16_to_float(m16[i]) : m[i];
+      const double v_old = half ? bf16_to_float(v16[i]) : v[i];
+      double mi = s_.beta1 * m_old + (1.0 - s_.beta1) * g;
+      double vi = s_.beta2 * v_old + (1.0 - s_.beta2) * g * g;
+      if (half) {
+        const uint32_t r = mix32(step_key ^ uint64_t(i));
+        m16[i] = float_to_bf16(float(mi), uint16_t(r));
+        v16[i] = float_to_bf16(float(vi), uint16_t(r >> 16));
+        // The step uses the stored moments, so a resumed run continues bit for bit.
+        mi = bf16_to_float(m16[i]);
+        vi = bf16_to_float(v16[i]);
+      } else {
+        m[i] = float(mi);
+        v[i] = float(vi);
+      }
+      const double update = lr * (mi / correction1) / (std::sqrt(vi / correction2) + s_.epsilon);
+      value[i] = std::clamp(float(double(value[i]) - update), s_.lower, s_.upper);
+    }
+  });
 }
 
 }  // namespace bl

@@ -2,6 +2,7 @@
 // Adam with per-parameter learning rates, optional decay, and box bounds projected after every
 // step; plus the `backlight optimize` driver (engine/optimize/optimize_job.cpp).
 #include <cstdint>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -15,7 +16,27 @@ struct AdamSettings {
   double decay_rate = 1.0;
   int decay_every = 0;
   float lower = -1e30f, upper = 1e30f;
+  // Storage of the two moments: float32, or bfloat16 with stochastic rounding (half the memory;
+  // 8 significant bits, unbiased, see float_to_bf16).
+  bool bf16_moments = false;
 };
+
+// bfloat16: the upper 16 bits of a float (same exponent range, 8 significant bits).
+inline float bf16_to_float(uint16_t h) {
+  const uint32_t bits = uint32_t(h) << 16;
+  float f;
+  std::memcpy(&f, &bits, 4);
+  return f;
+}
+// Stochastic rounding to bfloat16: `random` (uniform 16 bits) is added below the kept bits before
+// they are truncated, so the magnitude rounds up with probability equal to the dropped fraction
+// and E[result] = x. Round-to-nearest would stall Adam's second moment: with beta2 = 0.999 an
+// update changes v by 0.1%, below half a bfloat16 step (0.2–0.4%), so v would never move.
+inline uint16_t float_to_bf16(float x, uint16_t random) {
+  uint32_t bits;
+  std::memcpy(&bits, &x, 4);
+  return uint16_t((bits + random) >> 16);
+}
 
 class Adam {
  public:
@@ -31,8 +52,11 @@ class Adam {
   int steps() const { return t_; }
   int decay_steps() const { return global_t_; }
 
-  // State for checkpoints.
+  // State for checkpoints: the moments as floats, or (bf16_moments) as bfloat16 bit patterns;
+  // the other pair is empty.
   std::vector<float> m, v;
+  std::vector<uint16_t> m16, v16;
+  size_t state_size() const { return s_.bf16_moments ? m16.size() : m.size(); }
   void set_state(int t, int global_t) { t_ = t, global_t_ = global_t; }
   const AdamSettings& settings() const { return s_; }
 

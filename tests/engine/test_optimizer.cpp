@@ -139,6 +139,94 @@ TEST_CASE("resuming from a checkpoint reaches the same parameters as an uninterr
   CHECK(rows == 7);
 }
 
+TEST_CASE("bfloat16 moments: stochastic rounding is unbiased and keeps Adam's second moment moving", "[optimizer]") {
+  // A float between two bfloat16 values: over all 2^16 random words the mean is exactly x.
+  const float x = 1.f + 1.f / 3.f * 0x1p-7f;
+  REQUIRE(bf16_to_float(float_to_bf16(x, 0)) != x);
+  double sum = 0;
+  for (uint32_t r = 0; r < 65536; ++r) sum += bf16_to_float(float_to_bf16(x, uint16_t(r)));
+  CHECK(sum / 65536 == double(x));
+  CHECK(bf16_to_float(float_to_bf16(-x, 12345)) == -bf16_to_float(float_to_bf16(x, 12345)));
+  // Adam's second moment with beta2 = 0.999 relaxing from 1 to g² = 4: each update is 0.1% of v,
+  // below half a bfloat16 step. Stochastic rounding follows the exact EMA; rounding to nearest
+  // (the negative control) never leaves 1.
+  uint64_t state = 0x9e3779b97f4a7c15ull;
+  auto random16 = [&] {
+    state = state * 6364136223846793005ull + 1442695040888963407ull;
+    return uint16_t(state >> 48);
+  };
+  uint16_t stochastic = float_to_bf16(1.f, 0), nearest = stochastic;
+  double exact = 1;
+  for (int t = 0; t < 3000; ++t) {
+    exact = 0.999 * exact + 0.001 * 4;
+    stochastic = float_to_bf16(float(0.999 * bf16_to_float(stochastic) + 0.001 * 4), random16());
+    nearest = float_to_bf16(float(0.999 * bf16_to_float(nearest) + 0.001 * 4), 0x7fff);
+  }
+  INFO("exact " << exact << ", stochastic " << bf16_to_float(stochastic) << ", nearest " << bf16_to_float(nearest));
+  CHECK(std::abs(bf16_to_float(stochastic) - exact) < 0.03 * exact);
+  CHECK(bf16_to_float(nearest) == 1.f);
+}
+
+TEST_CASE("Adam with bfloat16 moments converges like float32 and halves the moment memory", "[optimizer]") {
+  // 4096 values pulled to targets by noisy gradients (noise 10x the signal near the end).
+  const size_t n = 4096;
+  std::vector<float> target(n);
+  for (size_t i = 0; i < n; ++i) target[i] = float(std::sin(0.01 * double(i)));
+  auto run = [&](bool half) {
+    AdamSettings s;
+    s.learning_rate = 0.02;
+    s.bf16_moments = half;
+    Adam adam(s);
+    std::vector<float> x(n, 0.f), g(n);
+    uint64_t state = 42;
+    for (int t = 0; t < 400; ++t) {
+      for (size_t i = 0; i < n; ++i) {
+        state = state * 6364136223846793005ull + 1442695040888963407ull;
+        const double noise = (double(state >> 11) * 0x1p-53 - 0.5) * 0.2;
+        g[i] = float(2 * (x[i] - target[i]) + noise);
+      }
+      adam.step(x, g);
+    }
+    CHECK((half ? adam.m16.size() : adam.m.size()) == n);
+    CHECK((half ? adam.m.size() : adam.m16.size()) == 0);
+    double se = 0;
+    for (size_t i = 0; i < n; ++i) se += (double(x[i]) - target[i]) * (double(x[i]) - target[i]);
+    return std::sqrt(se / double(n));
+  };
+  const double rmse32 = run(false), rmse16 = run(true);
+  INFO("RMSE float32 " << rmse32 << ", bfloat16 " << rmse16);
+  CHECK(rmse32 < 0.02);
+  CHECK(rmse16 < 1.1 * rmse32);
+}
+
+TEST_CASE("resuming with bfloat16 moments reaches the same parameters as an uninterrupted run", "[optimizer]") {
+  const std::string a = test::temp_dir("resume16-a"), b = test::temp_dir("resume16-b");
+  auto half = [](const std::string& job) {
+    nlohmann::json j = read_json(job);
+    j["parameters"]["floor.albedo"]["moments"] = "bfloat16";
+    std::ofstream(job) << j.dump();
+    return job;
+  };
+  REQUIRE(run_optimize(half(write_tiny_job(a, 6)), "", 1, true) == 0);
+  REQUIRE(run_optimize(half(write_tiny_job(b, 4)), "", 1, true) == 0);
+  auto state = read_json(b + "/out/checkpoint/state.json");
+  CHECK(state["parameters"]["floor.albedo"]["moments"] == "bfloat16");
+  CHECK(fs::file_size(b + "/out/checkpoint/floor.albedo.adam_m") == 64 * 64 * 3 * 2);
+  // A float32 config cannot continue from bfloat16 moments.
+  try {
+    run_optimize(write_tiny_job(b, 6), b + "/out", 1, true);
+    FAIL("resumed float32 moments from a bfloat16 checkpoint");
+  } catch (const InputError& e) {
+    CHECK(std::string(e.what()).find("precision") != std::string::npos);
+  }
+  REQUIRE(run_optimize(half(write_tiny_job(b, 6)), b + "/out", 1, true) == 0);
+  CHECK(read_all(a + "/out/final/floor.albedo.exr") == read_all(b + "/out/final/floor.albedo.exr"));
+  // And the bfloat16 run is not the float32 one (the option is in effect).
+  const std::string c = test::temp_dir("resume16-c");
+  REQUIRE(run_optimize(write_tiny_job(c, 6), "", 1, true) == 0);
+  CHECK(read_all(a + "/out/final/floor.albedo.exr") != read_all(c + "/out/final/floor.albedo.exr"));
+}
+
 TEST_CASE("config errors are one clear line naming the config", "[optimizer][errors]") {
   const std::string dir = test::temp_dir("opt-errors");
   write_tiny_job(dir, 2);
@@ -165,6 +253,10 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1, "bounds": [1, 0]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/parameters/floor.albedo/bounds");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "moments": "fp8"}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.albedo/moments: expected \"float32\" or \"bfloat16\"");
   Image small(5, 5, 3);
   write_image(dir + "/small.exr", small);
   expect_error(
