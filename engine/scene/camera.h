@@ -19,7 +19,9 @@ struct Camera {
   std::string name;
   Vec3f origin{0, 0, 0}, target{0, 0, -1}, up{0, 1, 0};
   float fov_degrees = 40.f;
-  bool fov_axis_x = true;
+  // The film axis `fov_degrees` spans (Mitsuba 3's fov_axis): x, y, the diagonal, or the smaller
+  // or larger side (whichever it is at the current resolution).
+  enum class FovAxis { X, Y, Diagonal, Smaller, Larger } fov_axis = FovAxis::X;
   int width = 256, height = 256;
   float near_clip = 1e-3f;
   int medium = -1;  // index into Scene::media the camera sits in, -1 = vacuum
@@ -33,8 +35,17 @@ struct Camera {
     true_up = cross(right, forward);
     float t = std::tan(fov_degrees * kPi / 360.f);
     float aspect = float(width) / float(height);
-    tan_x = fov_axis_x ? t : t * aspect;
-    tan_y = fov_axis_x ? t / aspect : t;
+    FovAxis axis = fov_axis;
+    if (axis == FovAxis::Smaller) axis = aspect >= 1.f ? FovAxis::Y : FovAxis::X;
+    if (axis == FovAxis::Larger) axis = aspect >= 1.f ? FovAxis::X : FovAxis::Y;
+    if (axis == FovAxis::Diagonal) {
+      const float diagonal = std::sqrt(1.f + aspect * aspect);
+      tan_x = t * aspect / diagonal;
+      tan_y = t / diagonal;
+    } else {
+      tan_x = axis == FovAxis::X ? t : t * aspect;
+      tan_y = axis == FovAxis::X ? t / aspect : t;
+    }
   }
   Ray generate(float px, float py) const {
     Vec3f d = normalize(forward + right * ((2.f * px / float(width) - 1.f) * tan_x) +

@@ -2,9 +2,11 @@
 // metallic-roughness materials and emissive materials as area lights.
 #include <tiny_gltf.h>
 
+#include <nlohmann/json.hpp>
+
 #include <cmath>
-#include <filesystem>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <map>
@@ -37,8 +39,27 @@ std::string gltf_json_text(const std::string& path, bool binary) {
   if (bytes.size() < 20 || bytes.compare(0, 4, "glTF") != 0) throw file_error(path, "invalid glTF: not a binary glTF");
   uint32_t length = 0;
   std::memcpy(&length, bytes.data() + 12, 4);
-  if (length > bytes.size() - 20) throw file_error(path, "invalid glTF: the JSON chunk extends past the end of the file");
+  if (length > bytes.size() - 20)
+    throw file_error(path, "invalid glTF: the JSON chunk extends past the end of the file");
   return bytes.substr(20, length);
+}
+
+// A file that requires an extension we do not implement (Draco or meshopt compression, ...) is
+// refused by name before tinygltf reads it: its buffers would otherwise fail with messages about
+// missing files or buffer views. No required extension is implemented yet.
+void check_required_extensions(const std::string& path, const std::string& json_text) {
+  const nlohmann::json doc = nlohmann::json::parse(json_text, nullptr, false);
+  if (doc.is_discarded() || !doc.is_object()) return;  // tinygltf reports the syntax error
+  const auto it = doc.find("extensionsRequired");
+  if (it == doc.end()) return;
+  if (!it->is_array()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
+  for (const auto& name : *it) {
+    if (!name.is_string()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
+    std::string printable = name.get<std::string>().substr(0, 100);
+    for (char& ch : printable)
+      if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) ch = '?';
+    throw file_error(path, "requires the glTF extension '" + printable + "', which backlight does not support");
+  }
 }
 
 // File access for tinygltf (the glTF itself, external buffers and images): only regular files,
@@ -58,7 +79,8 @@ bool gltf_read_file(std::vector<unsigned char>* out, std::string* err, const std
   }
   const auto size = fs::file_size(path, ec);
   if (ec || size > limits::kFileBytes) {
-    if (err) *err += "'" + path.substr(0, 200) + "' exceeds the limit of " + std::to_string(limits::kFileBytes) + " bytes\n";
+    if (err)
+      *err += "'" + path.substr(0, 200) + "' exceeds the limit of " + std::to_string(limits::kFileBytes) + " bytes\n";
     return false;
   }
   std::ifstream f(path, std::ios::binary);
@@ -80,7 +102,9 @@ tinygltf::Model read_model(const std::string& path) {
   std::string ext = fs::path(path).extension().string();
   for (auto& c : ext) c = char(std::tolower(c));
   // tinygltf's JSON parser recurses without a bound (60k-deep `extras` overflow the stack).
-  limits::check_json_depth(path, gltf_json_text(path, ext == ".glb"));
+  const std::string json_text = gltf_json_text(path, ext == ".glb");
+  limits::check_json_depth(path, json_text);
+  check_required_extensions(path, json_text);
   bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
                           : loader.LoadASCIIFromFile(&model, &err, &warn, path);
   if (!ok || !err.empty())
@@ -271,7 +295,8 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
   std::vector<int> parent(model.nodes.size(), -1);
   for (size_t n = 0; n < model.nodes.size(); ++n)
     for (int c : model.nodes[n].children) {
-      if (c < 0 || size_t(c) >= model.nodes.size()) throw file_error(path, "invalid node hierarchy (child out of range)");
+      if (c < 0 || size_t(c) >= model.nodes.size())
+        throw file_error(path, "invalid node hierarchy (child out of range)");
       if (parent[size_t(c)] >= 0 || size_t(c) == n)
         throw file_error(path, "invalid node hierarchy: node " + std::to_string(c) +
                                    " has more than one parent (glTF requires a tree)");
@@ -290,7 +315,8 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
   for (int n : roots) {
     if (n < 0 || size_t(n) >= model.nodes.size()) throw file_error(path, "invalid node hierarchy (root out of range)");
     if (parent[size_t(n)] >= 0 || !seen_roots.insert(n).second)
-      throw file_error(path, "invalid node hierarchy: root node " + std::to_string(n) + " has a parent or is listed twice");
+      throw file_error(path,
+                       "invalid node hierarchy: root node " + std::to_string(n) + " has a parent or is listed twice");
   }
   // With one parent per node, the depth limit in `visit` also catches cycles.
   for (int n : roots) visit(n, to_world, 0);
@@ -499,12 +525,13 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
     Camera c;
     c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
-    c.fov_axis_x = false;
+    c.fov_axis = Camera::FovAxis::Y;  // glTF's yfov
     c.fov_degrees = float(gc.perspective.yfov * 180.0 / M_PI);
     double aspect = gc.perspective.aspectRatio > 0 ? gc.perspective.aspectRatio : 1.0;
     c.width = 512;
     const double height = std::round(512.0 / aspect);
-    limits::check_image_size(path + ": camera " + std::to_string(ci), 512, height > 1e12 ? uint64_t(1e12) : uint64_t(std::max(1.0, height)));
+    limits::check_image_size(path + ": camera " + std::to_string(ci), 512,
+                             height > 1e12 ? uint64_t(1e12) : uint64_t(std::max(1.0, height)));
     c.height = int(std::max(1.0, height));
     c.origin = xf.point({0, 0, 0});
     c.target = c.origin + normalize(xf.vector({0, 0, -1}));
@@ -520,9 +547,12 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
           lo[k] = std::min(lo[k], m.positions[i][k]), hi[k] = std::max(hi[k], m.positions[i][k]);
     Vec3f center = (lo + hi) * 0.5f;
     float radius = 0.5f * length(hi - lo);
+    // The bounding sphere fits the 40° cone of the film's smaller side, so it stays in view at any
+    // resolution (--resolution 256x192 or 192x256 alike).
     Camera c;
     c.name = "default";
     c.fov_degrees = 40.f;
+    c.fov_axis = Camera::FovAxis::Smaller;
     c.target = center;
     c.origin =
         center + Vec3f(0, 0.3f, 1.f) * (radius / std::tan(20.f * kPi / 180.f) / length(Vec3f(0, 0.3f, 1.f)) * 1.1f);

@@ -12,8 +12,8 @@
 #include "engine/core/limits.h"
 #include "engine/io/image_io.h"
 #include "engine/io/json_node.h"
-#include "engine/scene/scene_load.h"
 #include "engine/scene/openvdb_io.h"
+#include "engine/scene/scene_load.h"
 #include "engine/scene/volume_io.h"
 
 namespace bl {
@@ -26,9 +26,19 @@ Camera parse_camera(Node& n, const std::string& default_name) {
   c.target = n.vec3("target");
   c.up = n.vec3("up", {0, 1, 0});
   c.fov_degrees = float(n.number_required("fov", 1e-3, 179.9));
-  std::string axis = n.string("fov_axis", "x");
-  if (axis != "x" && axis != "y") n.fail_at("fov_axis", "expected \"x\" or \"y\"");
-  c.fov_axis_x = axis == "x";
+  const std::string axis = n.string("fov_axis", "x");
+  if (axis == "x")
+    c.fov_axis = Camera::FovAxis::X;
+  else if (axis == "y")
+    c.fov_axis = Camera::FovAxis::Y;
+  else if (axis == "diagonal")
+    c.fov_axis = Camera::FovAxis::Diagonal;
+  else if (axis == "smaller")
+    c.fov_axis = Camera::FovAxis::Smaller;
+  else if (axis == "larger")
+    c.fov_axis = Camera::FovAxis::Larger;
+  else
+    n.fail_at("fov_axis", "expected \"x\", \"y\", \"diagonal\", \"smaller\" or \"larger\"");
   if (const json* r = n.find("resolution")) {
     if (!r->is_array() || r->size() != 2 || !(*r)[0].is_number_integer() || !(*r)[1].is_number_integer() ||
         (*r)[0].get<int64_t>() < 1 || (*r)[1].get<int64_t>() < 1 || (*r)[0].get<int64_t>() > 16384 ||
@@ -169,14 +179,15 @@ struct Loader {
       if (grid_out) *grid_out = grid;
     } else {
       throw file_error(file, where + (rgb ? ": expected a number, [r, g, b] or a grid object"
-                                           : ": expected a number or a grid object"));
+                                          : ": expected a number or a grid object"));
     }
     validate_param(p, file + ": " + where);
     return scene.params.add(std::move(p), file + ": " + where);
   }
 
   void medium(const std::string& name, Node n) {
-    if (name.empty() || name.find('.') != std::string::npos) n.fail("medium names must be non-empty and contain no '.'");
+    if (name.empty() || name.find('.') != std::string::npos)
+      n.fail("medium names must be non-empty and contain no '.'");
     Medium m;
     m.name = name;
     const std::string type = n.string("type");
@@ -197,8 +208,7 @@ struct Loader {
       p.upper = 1.f;
       return scene.params.add(std::move(p), file);
     }();
-    if (scene.params[m.albedo].shape.size() == 4 && !m.grid)
-      n.fail_at("albedo", "an albedo grid needs a grid medium");
+    if (scene.params[m.albedo].shape.size() == 4 && !m.grid) n.fail_at("albedo", "an albedo grid needs a grid medium");
     {
       Param p;
       p.name = name + ".scale";
@@ -271,7 +281,8 @@ struct Loader {
       m.roughness = tex("roughness", true, 0.f, 4.f);
       m.ior = float(n.number("ior", 1.5, 1.0001, 4.0));
     } else {
-      n.fail_at("type", "unknown material type '" + type + "' (expected diffuse, roughconductor, roughplastic or null)");
+      n.fail_at("type",
+                "unknown material type '" + type + "' (expected diffuse, roughconductor, roughplastic or null)");
     }
     n.finish();
     scene.materials.push_back(std::move(m));

@@ -1,0 +1,131 @@
+// glTF loading details a user meets on real files: the default camera (a file without one) keeps
+// the whole model in view at any film aspect, and a file that requires an extension backlight
+// does not implement is refused by the extension's name.
+#include <unistd.h>
+#include <catch2/catch.hpp>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
+
+using namespace bl;
+namespace fs = std::filesystem;
+
+namespace {
+struct TempDir {
+  fs::path dir = fs::temp_directory_path() / ("backlight-test-gltf-" + std::to_string(::getpid()));
+  TempDir() { fs::create_directories(dir); }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(dir, ec);
+  }
+  std::string operator()(const std::string& name) const { return (dir / name).string(); }
+};
+
+// A 2 × 2 × 2 grey cube centred at the origin (8 vertices, 12 triangles) in cube.bin, and a glTF
+// around it; `extra` is spliced into the top-level object.
+std::string write_cube(const TempDir& tmp, const std::string& name, const std::string& extra = "") {
+  const float p[8][3] = {{-1, -1, -1}, {1, -1, -1}, {1, 1, -1}, {-1, 1, -1},
+                         {-1, -1, 1},  {1, -1, 1},  {1, 1, 1},  {-1, 1, 1}};
+  const uint16_t idx[36] = {0, 2, 1, 0, 3, 2, 4, 5, 6, 4, 6, 7, 0, 1, 5, 0, 5, 4,
+                            3, 7, 6, 3, 6, 2, 0, 4, 7, 0, 7, 3, 1, 2, 6, 1, 6, 5};
+  std::ofstream bin(tmp("cube.bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(p), sizeof p);
+  bin.write(reinterpret_cast<const char*>(idx), sizeof idx);
+  bin.close();
+  std::ofstream(tmp(name)) << R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"name": "cube", "primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
+  "materials": [{"name": "grey", "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1],
+                 "metallicFactor": 0, "roughnessFactor": 1}}],
+  "buffers": [{"uri": "cube.bin", "byteLength": 168}],
+  "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 96}, {"buffer": 0, "byteOffset": 96, "byteLength": 72}],
+  "accessors": [{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3", "min": [-1, -1, -1], "max": [1, 1, 1]},
+                {"bufferView": 1, "componentType": 5123, "count": 36, "type": "SCALAR"}])"
+                           << extra << "}";
+  return tmp(name);
+}
+
+// How many border pixels see the cube rather than the white sky (radiance exactly 1).
+int border_hits(const Image& img) {
+  int hits = 0;
+  for (int y = 0; y < img.height; ++y)
+    for (int x = 0; x < img.width; ++x)
+      if (x == 0 || y == 0 || x == img.width - 1 || y == img.height - 1) hits += img.at(x, y, 1) != 1.f;
+  return hits;
+}
+}  // namespace
+
+TEST_CASE("a glTF without a camera is framed for the film's aspect", "[gltf]") {
+  TempDir tmp;
+  const std::string file = write_cube(tmp, "cube.gltf");
+  for (const auto& [w, h] : {std::pair{64, 32}, std::pair{32, 64}, std::pair{48, 48}}) {
+    CAPTURE(w, h);
+    auto scene = load_scene(file);
+    REQUIRE(scene->cameras.size() == 1);
+    Camera& cam = scene->cameras[0];
+    cam.width = w, cam.height = h;
+    cam.update();
+    const Image img = render(*scene, {0, 2, 1, false});
+    CHECK(img.at(w / 2, h / 2, 1) < 0.6f);  // the cube is there
+    CHECK(border_hits(img) == 0);           // and all of it
+    // Negative control: the same 40° on the wide side (the old framing) cuts the cube off on a
+    // film that is not square.
+    if (w != h) {
+      cam.fov_axis = w > h ? Camera::FovAxis::X : Camera::FovAxis::Y;
+      cam.update();
+      CHECK(border_hits(render(*scene, {0, 2, 1, false})) > 0);
+    }
+  }
+}
+
+TEST_CASE("fov_axis follows Mitsuba 3: x, y, diagonal, smaller, larger", "[gltf][camera]") {
+  Camera c;
+  c.fov_degrees = 60.f;
+  c.width = 200, c.height = 100;
+  const float t = std::tan(30.f * kPi / 180.f);
+  auto check = [&](Camera::FovAxis axis, float tx, float ty) {
+    c.fov_axis = axis;
+    c.update();
+    CHECK(c.tan_x == Approx(tx));
+    CHECK(c.tan_y == Approx(ty));
+  };
+  check(Camera::FovAxis::X, t, t / 2);
+  check(Camera::FovAxis::Y, 2 * t, t);
+  check(Camera::FovAxis::Smaller, 2 * t, t);  // height is the smaller side
+  check(Camera::FovAxis::Larger, t, t / 2);
+  check(Camera::FovAxis::Diagonal, t * 2 / std::sqrt(5.f), t / std::sqrt(5.f));
+}
+
+TEST_CASE("a required glTF extension backlight lacks is refused by name", "[gltf][errors]") {
+  TempDir tmp;
+  auto error_of = [](const std::string& path) {
+    try {
+      load_scene(path);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  const std::string draco = write_cube(
+      tmp, "draco.gltf",
+      R"(, "extensionsUsed": ["KHR_draco_mesh_compression"], "extensionsRequired": ["KHR_draco_mesh_compression"])");
+  const std::string e = error_of(draco);
+  CHECK(e.find("draco.gltf: requires the glTF extension 'KHR_draco_mesh_compression'") != std::string::npos);
+  CHECK(e.find('\n') == std::string::npos);
+  // A control character in the name stays out of the one-line message.
+  const std::string odd = write_cube(tmp, "odd.gltf", R"(, "extensionsRequired": ["EXT_a\nb"])");
+  const std::string e2 = error_of(odd);
+  CHECK(e2.find("EXT_a?b") != std::string::npos);
+  CHECK(e2.find('\n') == std::string::npos);
+  // Used but not required: loads (the extension is optional by the spec).
+  CHECK(error_of(write_cube(tmp, "used.gltf", R"(, "extensionsUsed": ["EXT_unknown_thing"])")).empty());
+  CHECK(error_of(write_cube(tmp, "bad.gltf", R"(, "extensionsRequired": "KHR_x")")).find("must be an array") !=
+        std::string::npos);
+}
