@@ -170,38 +170,92 @@ AccessorBytes accessor_bytes(const tinygltf::Model& model, int index, size_t ele
   return {buf.data.data() + start, size_t(stride), size_t(acc.count)};
 }
 
-// Reads accessor `index` as floats (count × components).
+// `bytes` bytes at `offset` into buffer view `view_index`, bounds-checked like accessor_bytes
+// (64-bit checked arithmetic; within the view and its buffer).
+const unsigned char* view_bytes(const tinygltf::Model& model, int view_index, int64_t offset, uint64_t bytes,
+                                const std::string& what, const std::string& path) {
+  if (view_index < 0 || size_t(view_index) >= model.bufferViews.size())
+    throw file_error(path, what + ": buffer view out of range");
+  const auto& view = model.bufferViews[size_t(view_index)];
+  if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
+    throw file_error(path, "buffer view references a missing buffer");
+  const auto& buf = model.buffers[size_t(view.buffer)];
+  uint64_t end_in_view = 0, start = 0, end = 0;
+  const bool fits = offset >= 0 && limits::checked_add(uint64_t(offset), bytes, end_in_view) &&
+                    end_in_view <= view.byteLength && limits::checked_add(view.byteOffset, uint64_t(offset), start) &&
+                    limits::checked_add(start, bytes, end) && end <= buf.data.size();
+  if (!fits) throw file_error(path, what + " reads past the end of its buffer view");
+  return buf.data.data() + start;
+}
+
+uint32_t read_index_value(const unsigned char* p, size_t size) {
+  return size == 1   ? p[0]
+         : size == 2 ? uint32_t(p[0] | (p[1] << 8))
+                     : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
+}
+
+size_t index_size(int component_type) {
+  return component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
+         : component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
+         : component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
+                                                                    : 0;
+}
+
+// Reads accessor `index` as floats (count × components). A sparse accessor is its base (the
+// buffer view, or zeros when it has none) with `sparse.count` elements substituted.
 std::vector<float> read_floats(const tinygltf::Model& model, int index, int components, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
   const auto& acc = model.accessors[size_t(index)];
+  const std::string what = "accessor " + std::to_string(index);
   if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT ||
       tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
-    throw file_error(path, "accessor " + std::to_string(index) + " has an unsupported type");
-  const AccessorBytes bytes = accessor_bytes(model, index, size_t(components) * 4, path);
-  std::vector<float> out(bytes.count * size_t(components));
-  for (size_t i = 0; i < bytes.count; ++i)
-    std::memcpy(&out[i * size_t(components)], bytes.data + i * bytes.stride, size_t(components) * 4);
+    throw file_error(path, what + " has an unsupported type");
+  const size_t element = size_t(components) * 4;
+  std::vector<float> out;
+  if (acc.bufferView >= 0 || !acc.sparse.isSparse) {
+    const AccessorBytes bytes = accessor_bytes(model, index, element, path);
+    out.resize(bytes.count * size_t(components));
+    for (size_t i = 0; i < bytes.count; ++i)
+      std::memcpy(&out[i * size_t(components)], bytes.data + i * bytes.stride, element);
+  } else {
+    // No bytes in the file back these zeros: the count alone is bounded, by the mesh limit.
+    limits::require_at_most(path, what + ": element count", acc.count, limits::kMeshElements);
+    out.assign(acc.count * size_t(components), 0.f);
+  }
+  if (acc.sparse.isSparse) {
+    const auto& sp = acc.sparse;
+    const std::string swhat = what + " (sparse)";
+    if (sp.count < 1 || uint64_t(sp.count) > acc.count)
+      throw file_error(
+          path, swhat + ": count " + std::to_string(sp.count) + " is not in [1, " + std::to_string(acc.count) + "]");
+    const size_t isize = index_size(sp.indices.componentType);
+    if (!isize) throw file_error(path, swhat + ": unsupported index type");
+    const size_t n = size_t(sp.count);
+    const unsigned char* idx =
+        view_bytes(model, sp.indices.bufferView, sp.indices.byteOffset, uint64_t(n) * isize, swhat + " indices", path);
+    const unsigned char* val =
+        view_bytes(model, sp.values.bufferView, sp.values.byteOffset, uint64_t(n) * element, swhat + " values", path);
+    for (size_t k = 0; k < n; ++k) {
+      const uint32_t i = read_index_value(idx + k * isize, isize);
+      if (uint64_t(i) >= acc.count) throw file_error(path, swhat + ": index " + std::to_string(i) + " is out of range");
+      std::memcpy(&out[size_t(i) * size_t(components)], val + k * element, element);
+    }
+  }
   for (float v : out)
-    if (!std::isfinite(v)) throw file_error(path, "accessor " + std::to_string(index) + " holds non-finite values");
+    if (!std::isfinite(v)) throw file_error(path, what + " holds non-finite values");
   return out;
 }
 
 std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
   const auto& acc = model.accessors[size_t(index)];
-  size_t size = acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
-                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
-                : acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT   ? 4
-                                                                              : 0;
+  const size_t size = index_size(acc.componentType);
   if (!size) throw file_error(path, "unsupported index type");
+  if (acc.sparse.isSparse)
+    throw file_error(path, "accessor " + std::to_string(index) + ": sparse triangle indices are not supported");
   const AccessorBytes bytes = accessor_bytes(model, index, size, path);
   std::vector<uint32_t> out(bytes.count);
-  for (size_t i = 0; i < bytes.count; ++i) {
-    const unsigned char* p = bytes.data + i * bytes.stride;
-    out[i] = size == 1   ? p[0]
-             : size == 2 ? uint32_t(p[0] | (p[1] << 8))
-                         : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
-  }
+  for (size_t i = 0; i < bytes.count; ++i) out[i] = read_index_value(bytes.data + i * bytes.stride, size);
   return out;
 }
 

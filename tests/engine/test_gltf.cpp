@@ -129,3 +129,70 @@ TEST_CASE("a required glTF extension backlight lacks is refused by name", "[gltf
   CHECK(error_of(write_cube(tmp, "bad.gltf", R"(, "extensionsRequired": "KHR_x")")).find("must be an array") !=
         std::string::npos);
 }
+
+namespace {
+// A quad (4 vertices, 2 triangles) whose POSITION accessor is sparse: `with_base` keeps a base
+// buffer view of four vertices at the origin, otherwise the base is zeros. The sparse part
+// substitutes vertices 1, 2 and 3 (vertex 0 stays at the origin).
+std::string write_sparse_quad(const TempDir& tmp, const std::string& name, bool with_base,
+                              const std::string& sparse_override = "") {
+  const float base[4][3] = {};
+  const uint16_t idx[6] = {0, 1, 2, 0, 2, 3};
+  const uint16_t sparse_idx[3] = {1, 2, 3};
+  const float sparse_val[3][3] = {{1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
+  std::ofstream bin(tmp(name + ".bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(base), sizeof base);              // 0..48
+  bin.write(reinterpret_cast<const char*>(idx), sizeof idx);                // 48..60
+  bin.write(reinterpret_cast<const char*>(sparse_idx), sizeof sparse_idx);  // 60..66
+  bin.write("\0\0", 2);                                                     // 66..68 (align)
+  bin.write(reinterpret_cast<const char*>(sparse_val), sizeof sparse_val);  // 68..104
+  bin.close();
+  const std::string sparse = sparse_override.empty() ? R"("sparse": {"count": 3,
+      "indices": {"bufferView": 2, "componentType": 5123}, "values": {"bufferView": 3}})"
+                                                     : sparse_override;
+  std::ofstream(tmp(name)) << R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"name": "quad", "primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+  "buffers": [{"uri": ")" + name + R"(.bin", "byteLength": 104}],
+  "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 12},
+                  {"buffer": 0, "byteOffset": 60, "byteLength": 6}, {"buffer": 0, "byteOffset": 68, "byteLength": 36}],
+  "accessors": [{)" + (with_base ? std::string(R"("bufferView": 0, )") : std::string()) +
+                                  R"("componentType": 5126, "count": 4, "type": "VEC3",
+                 "min": [0, 0, 0], "max": [1, 1, 0], )" +
+                                  sparse + R"(},
+                {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}]})";
+  return tmp(name);
+}
+}  // namespace
+
+TEST_CASE("sparse accessors substitute their elements, with or without a base buffer view", "[gltf]") {
+  TempDir tmp;
+  for (const bool with_base : {true, false}) {
+    CAPTURE(with_base);
+    auto scene = load_scene(write_sparse_quad(tmp, with_base ? "based.gltf" : "zeros.gltf", with_base));
+    REQUIRE(scene->meshes.size() == 1);
+    const Mesh& m = scene->meshes[0];
+    REQUIRE(m.vertex_count() == 4);
+    const float want[4][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
+    for (int v = 0; v < 4; ++v)
+      for (int k = 0; k < 3; ++k) CHECK(m.positions[size_t(v)][k] == want[v][k]);
+  }
+  auto error_of = [](const std::string& path) {
+    try {
+      load_scene(path);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  // An index past the accessor, values past their view, a count past the accessor's.
+  CHECK(error_of(write_sparse_quad(tmp, "j.gltf", true, R"("sparse": {"count": 1,
+      "indices": {"bufferView": 3, "componentType": 5125}, "values": {"bufferView": 3}})"))
+            .find("is out of range") != std::string::npos);  // 1.0f read as an index: 1065353216
+  CHECK(error_of(write_sparse_quad(tmp, "k.gltf", true, R"("sparse": {"count": 3,
+      "indices": {"bufferView": 2, "componentType": 5123}, "values": {"bufferView": 3, "byteOffset": 4}})"))
+            .find("reads past the end of its buffer view") != std::string::npos);
+  CHECK(error_of(write_sparse_quad(tmp, "l.gltf", true, R"("sparse": {"count": 5,
+      "indices": {"bufferView": 2, "componentType": 5123}, "values": {"bufferView": 3}})"))
+            .find("count 5 is not in [1, 4]") != std::string::npos);
+}
