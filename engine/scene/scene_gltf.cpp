@@ -259,6 +259,23 @@ std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, cons
   return out;
 }
 
+// The uv set (TEXCOORD_n) a material's textures read. backlight meshes carry one uv set, so the
+// base colour and emissive textures of one material must agree on it.
+int material_tex_coord(const tinygltf::Model& model, int material, const std::string& path) {
+  if (material < 0 || size_t(material) >= model.materials.size()) return 0;
+  const auto& gm = model.materials[size_t(material)];
+  const auto& base = gm.pbrMetallicRoughness.baseColorTexture;
+  const auto& emissive = gm.emissiveTexture;
+  if (base.index >= 0 && emissive.index >= 0 && base.texCoord != emissive.texCoord)
+    throw file_error(path, "material '" + gm.name.substr(0, 100) +
+                               "': base colour and emissive textures use different uv sets (TEXCOORD_" +
+                               std::to_string(base.texCoord) + ", TEXCOORD_" + std::to_string(emissive.texCoord) +
+                               "); backlight meshes carry one");
+  const int set = base.index >= 0 ? base.texCoord : emissive.index >= 0 ? emissive.texCoord : 0;
+  if (set < 0 || set > 7) throw file_error(path, "material '" + gm.name.substr(0, 100) + "': texCoord out of range");
+  return set;
+}
+
 struct Primitive {
   Mesh mesh;  // world space, unpadded
   int material = -1;
@@ -312,7 +329,9 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
           for (size_t i = 0; i + 2 < nrm.size(); i += 3)
             p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
         }
-        if (auto it = prim.attributes.find("TEXCOORD_0"); it != prim.attributes.end()) {
+        if (auto it =
+                prim.attributes.find("TEXCOORD_" + std::to_string(material_tex_coord(model, prim.material, path)));
+            it != prim.attributes.end()) {
           std::vector<float> uv = read_floats(model, it->second, 2, path);
           for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
         }
@@ -456,17 +475,19 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     for (const auto& p : prims) {
       if (p.material < 0 || size_t(p.material) >= model.materials.size() || !counted.insert(p.material).second)
         continue;
-      const int t = model.materials[size_t(p.material)].pbrMetallicRoughness.baseColorTexture.index;
-      if (t < 0 || size_t(t) >= model.textures.size()) continue;
-      const int src = model.textures[size_t(t)].source;
-      if (src < 0 || size_t(src) >= model.images.size()) continue;
-      const auto& img = model.images[size_t(src)];
-      limits::add_to_total(
-          path, "total parameter size (texels of every material's texture)", planned,
-          limits::checked_product(path, "texture size",
-                                  {uint64_t(std::max(0, img.width)), uint64_t(std::max(0, img.height)), 3},
-                                  limits::kParamValues),
-          limits::kParamValues);
+      const auto& gm = model.materials[size_t(p.material)];
+      for (const int t : {gm.pbrMetallicRoughness.baseColorTexture.index, gm.emissiveTexture.index}) {
+        if (t < 0 || size_t(t) >= model.textures.size()) continue;
+        const int src = model.textures[size_t(t)].source;
+        if (src < 0 || size_t(src) >= model.images.size()) continue;
+        const auto& img = model.images[size_t(src)];
+        limits::add_to_total(
+            path, "total parameter size (texels of every material's textures)", planned,
+            limits::checked_product(path, "texture size",
+                                    {uint64_t(std::max(0, img.width)), uint64_t(std::max(0, img.height)), 3},
+                                    limits::kParamValues),
+            limits::kParamValues);
+      }
     }
   }
 
@@ -485,6 +506,32 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     TextureSlot s;
     s.param = scene->params.add(std::move(p), path);
     return s;
+  };
+  // An sRGB 8-bit glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
+  auto texture_param = [&](int texture, const std::vector<float>& factor, float upper, const std::string& name,
+                           const std::string& what) {
+    if (size_t(texture) >= model.textures.size()) throw file_error(path, name + ": references a missing texture");
+    const auto& tex = model.textures[size_t(texture)];
+    if (tex.source < 0 || size_t(tex.source) >= model.images.size())
+      throw file_error(path, "texture " + std::to_string(texture) + " references a missing image");
+    const auto& img = model.images[size_t(tex.source)];
+    if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
+      throw file_error(path, what + " '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
+    limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width), uint64_t(img.height));
+    if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
+      throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
+    std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
+    for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
+      for (int c = 0; c < 3; ++c)
+        v[i * 3 + size_t(c)] = std::min(
+            upper, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * factor[size_t(c)]);
+    TextureSlot slot = add_param(name, {img.height, img.width, 3}, std::move(v), 0.f, upper);
+    slot.bitmap = true;
+    if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
+      throw file_error(path, "texture references a missing sampler");
+    const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
+    slot.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
+    return slot;
   };
   auto material_for = [&](int gi) {
     if (auto it = material_of.find(gi); it != material_of.end()) return it->second;
@@ -510,30 +557,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     TextureSlot color;
     const std::string key = metal ? ".specular" : ".albedo";
     if (pbr.baseColorTexture.index >= 0) {
-      if (size_t(pbr.baseColorTexture.index) >= model.textures.size())
-        throw file_error(path, "material '" + gm.name + "' references a missing texture");
-      const auto& tex = model.textures[size_t(pbr.baseColorTexture.index)];
-      if (tex.source < 0 || size_t(tex.source) >= model.images.size())
-        throw file_error(path, "texture " + std::to_string(pbr.baseColorTexture.index) + " references a missing image");
-      const auto& img = model.images[size_t(tex.source)];
-      if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
-        throw file_error(path,
-                         "base colour texture '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
-      limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width),
-                               uint64_t(img.height));
-      if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
-        throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
-      std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
-      for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
-        for (int c = 0; c < 3; ++c)
-          v[i * 3 + size_t(c)] = std::min(
-              1.f, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * base[size_t(c)]);
-      color = add_param(m.name + key, {img.height, img.width, 3}, std::move(v), 0.f, 1.f);
-      color.bitmap = true;
-      if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
-        throw file_error(path, "texture references a missing sampler");
-      int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
-      color.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
+      color = texture_param(pbr.baseColorTexture.index, base, 1.f, m.name + key, "base colour texture");
     } else {
       color = add_param(m.name + key, {3}, base, 0.f, 1.f);
     }
@@ -543,6 +567,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
   };
 
   UniqueNames shape_names;
+  std::map<int, TextureSlot> emission_of;  // glTF material → its emissive texture parameter
   for (auto& p : prims) {
     Mesh mesh = std::move(p.mesh);
     mesh.name = shape_names.make(sanitize(p.name));
@@ -560,7 +585,21 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       if (e.size() == 3 && (e[0] > 0 || e[1] > 0 || e[2] > 0)) {
         AreaEmitter em;
         em.mesh = int(scene->meshes.size());
-        em.radiance = add_param(mesh.name + ".radiance", {3}, e, 0.f, 1e30f);
+        // emissiveTexture (sRGB) × emissiveFactor × strength is one bitmap parameter per material,
+        // `<material>.emission`, shared by its shapes; constant emission is per shape.
+        if (gm.emissiveTexture.index >= 0) {
+          auto it = emission_of.find(p.material);
+          if (it == emission_of.end()) {
+            const std::string material_name = scene->materials[size_t(mesh.material)].name;
+            it = emission_of
+                     .emplace(p.material, texture_param(gm.emissiveTexture.index, e, 1e30f, material_name + ".emission",
+                                                        "emissive texture"))
+                     .first;
+          }
+          em.radiance = it->second;
+        } else {
+          em.radiance = add_param(mesh.name + ".radiance", {3}, e, 0.f, 1e30f);
+        }
         mesh.emitter = int(scene->area_emitters.size());
         scene->area_emitters.push_back(std::move(em));
       }

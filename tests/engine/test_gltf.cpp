@@ -12,6 +12,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/integrators/render.h"
+#include "engine/io/image_io.h"
 #include "engine/scene/scene_load.h"
 
 using namespace bl;
@@ -195,4 +196,70 @@ TEST_CASE("sparse accessors substitute their elements, with or without a base bu
   CHECK(error_of(write_sparse_quad(tmp, "l.gltf", true, R"("sparse": {"count": 5,
       "indices": {"bufferView": 2, "componentType": 5123}, "values": {"bufferView": 3}})"))
             .find("count 5 is not in [1, 4]") != std::string::npos);
+}
+
+namespace {
+// A 2 × 2 quad facing +z that emits its texture (left texel red, right texel green) through
+// TEXCOORD_1; TEXCOORD_0 is all zeros, so a loader reading the wrong set shows one colour.
+std::string write_emissive_quad(const TempDir& tmp, const std::string& name, const std::string& base_texture = "") {
+  Image tex(2, 1, 3);
+  tex.at(0, 0, 0) = 1.f;
+  tex.at(1, 0, 1) = 1.f;
+  write_image(tmp("emit.png"), tex);
+  const float pos[4][3] = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  const float uv0[4][2] = {};
+  const float uv1[4][2] = {{0, 1}, {1, 1}, {1, 0}, {0, 0}};
+  const uint16_t idx[6] = {0, 1, 2, 0, 2, 3};
+  std::ofstream bin(tmp(name + ".bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(pos), sizeof pos);  // 0..48
+  bin.write(reinterpret_cast<const char*>(uv0), sizeof uv0);  // 48..80
+  bin.write(reinterpret_cast<const char*>(uv1), sizeof uv1);  // 80..112
+  bin.write(reinterpret_cast<const char*>(idx), sizeof idx);  // 112..124
+  bin.close();
+  std::ofstream(tmp(name)) << R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"name": "quad", "primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1, "TEXCOORD_1": 2},
+              "indices": 3, "material": 0}]}],
+  "materials": [{"name": "glow", "emissiveFactor": [1, 1, 1], "emissiveTexture": {"index": 0, "texCoord": 1},
+                 "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0)" +
+                                  base_texture + R"(}}],
+  "textures": [{"source": 0}], "images": [{"uri": "emit.png"}],
+  "buffers": [{"uri": ")" + name + R"(.bin", "byteLength": 124}],
+  "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+                  {"buffer": 0, "byteOffset": 80, "byteLength": 32}, {"buffer": 0, "byteOffset": 112, "byteLength": 12}],
+  "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [-1, -1, 0], "max": [1, 1, 0]},
+                {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+                {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC2"},
+                {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}]})";
+  return tmp(name);
+}
+}  // namespace
+
+TEST_CASE("emissive textures emit through the uv set their texCoord names", "[gltf]") {
+  TempDir tmp;
+  auto scene = load_scene(write_emissive_quad(tmp, "glow.gltf"));
+  const int h = scene->params.find("glow.emission");
+  REQUIRE(h >= 0);
+  CHECK(scene->params[h].shape == std::vector<int>{1, 2, 3});
+  REQUIRE(scene->area_emitters.size() == 1);
+  Camera& cam = scene->cameras[0];
+  cam.width = 32, cam.height = 32;
+  cam.update();
+  const Image img = render(*scene, {0, 4, 1, false});
+  // Quad spans the middle of the view: left quarter-point red, right quarter-point green.
+  const int y = 16;
+  const float* left = &img.data[(size_t(y) * 32 + 11) * 3];
+  const float* right = &img.data[(size_t(y) * 32 + 20) * 3];
+  INFO("left " << left[0] << " " << left[1] << " " << left[2] << ", right " << right[0] << " " << right[1] << " "
+               << right[2]);
+  CHECK(left[0] > 2 * left[1]);
+  CHECK(right[1] > 2 * right[0]);
+  CHECK(left[2] < 0.2f * left[0]);  // not the white of an ignored texture
+  // One uv set per mesh: a base colour texture on another set is refused by name.
+  try {
+    load_scene(write_emissive_quad(tmp, "two.gltf", R"(, "baseColorTexture": {"index": 0, "texCoord": 0})"));
+    FAIL("two uv sets accepted");
+  } catch (const InputError& e) {
+    CHECK(std::string(e.what()).find("different uv sets (TEXCOORD_0, TEXCOORD_1)") != std::string::npos);
+  }
 }
