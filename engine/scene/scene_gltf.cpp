@@ -46,8 +46,10 @@ std::string gltf_json_text(const std::string& path, bool binary) {
 
 // A file that requires an extension we do not implement (Draco or meshopt compression, ...) is
 // refused by name before tinygltf reads it: its buffers would otherwise fail with messages about
-// missing files or buffer views. No required extension is implemented yet.
+// missing files or buffer views.
 void check_required_extensions(const std::string& path, const std::string& json_text) {
+  static const std::set<std::string> implemented = {"KHR_mesh_quantization", "KHR_texture_transform",
+                                                    "KHR_materials_emissive_strength"};
   const nlohmann::json doc = nlohmann::json::parse(json_text, nullptr, false);
   if (doc.is_discarded() || !doc.is_object()) return;  // tinygltf reports the syntax error
   const auto it = doc.find("extensionsRequired");
@@ -55,6 +57,7 @@ void check_required_extensions(const std::string& path, const std::string& json_
   if (!it->is_array()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
   for (const auto& name : *it) {
     if (!name.is_string()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
+    if (implemented.count(name.get<std::string>())) continue;
     std::string printable = name.get<std::string>().substr(0, 100);
     for (char& ch : printable)
       if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) ch = '?';
@@ -207,16 +210,50 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
   const auto& acc = model.accessors[size_t(index)];
   const std::string what = "accessor " + std::to_string(index);
-  if (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT ||
-      tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
+  // Floats, or integers (texture coordinates in core glTF; any attribute with
+  // KHR_mesh_quantization), normalized to [0, 1] / [-1, 1] when the accessor says so.
+  const int type = acc.componentType;
+  const size_t csize = type == TINYGLTF_COMPONENT_TYPE_FLOAT                                                     ? 4
+                       : type == TINYGLTF_COMPONENT_TYPE_BYTE || type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE   ? 1
+                       : type == TINYGLTF_COMPONENT_TYPE_SHORT || type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
+                                                                                                                 : 0;
+  if (!csize || tinygltf::GetNumComponentsInType(uint32_t(acc.type)) != components)
     throw file_error(path, what + " has an unsupported type");
-  const size_t element = size_t(components) * 4;
+  const size_t element = size_t(components) * csize;
+  auto decode = [&](const unsigned char* src, float* dst) {
+    for (int c = 0; c < components; ++c, src += csize) {
+      float v;
+      switch (type) {
+        case TINYGLTF_COMPONENT_TYPE_FLOAT:
+          std::memcpy(&v, src, 4);
+          break;
+        case TINYGLTF_COMPONENT_TYPE_BYTE:
+          v = float(int8_t(src[0]));
+          break;
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+          v = float(src[0]);
+          break;
+        case TINYGLTF_COMPONENT_TYPE_SHORT:
+          v = float(int16_t(uint16_t(src[0] | src[1] << 8)));
+          break;
+        default:
+          v = float(uint16_t(src[0] | src[1] << 8));
+          break;
+      }
+      if (acc.normalized) {
+        if (type == TINYGLTF_COMPONENT_TYPE_BYTE) v = std::max(v / 127.f, -1.f);
+        if (type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE) v /= 255.f;
+        if (type == TINYGLTF_COMPONENT_TYPE_SHORT) v = std::max(v / 32767.f, -1.f);
+        if (type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT) v /= 65535.f;
+      }
+      dst[c] = v;
+    }
+  };
   std::vector<float> out;
   if (acc.bufferView >= 0 || !acc.sparse.isSparse) {
     const AccessorBytes bytes = accessor_bytes(model, index, element, path);
     out.resize(bytes.count * size_t(components));
-    for (size_t i = 0; i < bytes.count; ++i)
-      std::memcpy(&out[i * size_t(components)], bytes.data + i * bytes.stride, element);
+    for (size_t i = 0; i < bytes.count; ++i) decode(bytes.data + i * bytes.stride, &out[i * size_t(components)]);
   } else {
     // No bytes in the file back these zeros: the count alone is bounded, by the mesh limit.
     limits::require_at_most(path, what + ": element count", acc.count, limits::kMeshElements);
@@ -238,7 +275,7 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
     for (size_t k = 0; k < n; ++k) {
       const uint32_t i = read_index_value(idx + k * isize, isize);
       if (uint64_t(i) >= acc.count) throw file_error(path, swhat + ": index " + std::to_string(i) + " is out of range");
-      std::memcpy(&out[size_t(i) * size_t(components)], val + k * element, element);
+      decode(val + k * element, &out[size_t(i) * size_t(components)]);
     }
   }
   for (float v : out)
@@ -274,6 +311,62 @@ int material_tex_coord(const tinygltf::Model& model, int material, const std::st
   const int set = base.index >= 0 ? base.texCoord : emissive.index >= 0 ? emissive.texCoord : 0;
   if (set < 0 || set > 7) throw file_error(path, "material '" + gm.name.substr(0, 100) + "': texCoord out of range");
   return set;
+}
+
+// KHR_texture_transform of a texture reference: uv' = T(offset) · R(rotation) · S(scale) · uv.
+// Applied to the mesh's uvs at load, so the textures of one material must share it.
+struct UvTransform {
+  double offset[2] = {0, 0}, rotation = 0, scale[2] = {1, 1};
+  bool operator==(const UvTransform& o) const {
+    return offset[0] == o.offset[0] && offset[1] == o.offset[1] && rotation == o.rotation && scale[0] == o.scale[0] &&
+           scale[1] == o.scale[1];
+  }
+};
+UvTransform texture_transform(const tinygltf::ExtensionMap& ext, const std::string& where, const std::string& path) {
+  UvTransform t;
+  auto it = ext.find("KHR_texture_transform");
+  if (it == ext.end()) return t;
+  const tinygltf::Value& v = it->second;
+  auto pair = [&](const char* key, double* out) {
+    if (!v.Has(key)) return;
+    const tinygltf::Value& a = v.Get(key);
+    if (!a.IsArray() || a.ArrayLen() != 2 || !a.Get(0).IsNumber() || !a.Get(1).IsNumber())
+      throw file_error(path, where + ": KHR_texture_transform " + key + " must be two numbers");
+    out[0] = a.Get(0).GetNumberAsDouble(), out[1] = a.Get(1).GetNumberAsDouble();
+  };
+  pair("offset", t.offset);
+  pair("scale", t.scale);
+  if (v.Has("rotation")) {
+    if (!v.Get("rotation").IsNumber())
+      throw file_error(path, where + ": KHR_texture_transform rotation must be a number");
+    t.rotation = v.Get("rotation").GetNumberAsDouble();
+  }
+  if (v.Has("texCoord")) throw file_error(path, where + ": KHR_texture_transform texCoord overrides are not supported");
+  for (double d : {t.offset[0], t.offset[1], t.rotation, t.scale[0], t.scale[1]})
+    if (!std::isfinite(d) || std::abs(d) > 1e6)
+      throw file_error(path, where + ": KHR_texture_transform values must be finite and at most 1e6");
+  return t;
+}
+void apply_texture_transform(const tinygltf::Model& model, int material, std::vector<float>& uv,
+                             const std::string& path) {
+  if (material < 0 || size_t(material) >= model.materials.size()) return;
+  const auto& gm = model.materials[size_t(material)];
+  const std::string where = "material '" + gm.name.substr(0, 100) + "'";
+  const auto& base = gm.pbrMetallicRoughness.baseColorTexture;
+  const auto& emissive = gm.emissiveTexture;
+  const UvTransform tb = texture_transform(base.extensions, where, path);
+  const UvTransform te = texture_transform(emissive.extensions, where, path);
+  if (base.index >= 0 && emissive.index >= 0 && !(tb == te))
+    throw file_error(path, where + ": base colour and emissive textures have different KHR_texture_transforms");
+  const UvTransform t = base.index >= 0 ? tb : te;
+  if (t == UvTransform{}) return;
+  const double c = std::cos(t.rotation), s = std::sin(t.rotation);
+  for (size_t i = 0; i + 1 < uv.size(); i += 2) {
+    const double u = uv[i] * t.scale[0], v = uv[i + 1] * t.scale[1];
+    // The extension's GLSL: rotation = mat3(cos, sin, 0, -sin, cos, 0, 0, 0, 1), column-major.
+    uv[i] = float(c * u - s * v + t.offset[0]);
+    uv[i + 1] = float(s * u + c * v + t.offset[1]);
+  }
 }
 
 struct Primitive {
@@ -333,6 +426,7 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
                 prim.attributes.find("TEXCOORD_" + std::to_string(material_tex_coord(model, prim.material, path)));
             it != prim.attributes.end()) {
           std::vector<float> uv = read_floats(model, it->second, 2, path);
+          apply_texture_transform(model, prim.material, uv, path);
           for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
         }
         if (prim.indices >= 0) {

@@ -263,3 +263,83 @@ TEST_CASE("emissive textures emit through the uv set their texCoord names", "[gl
     CHECK(std::string(e.what()).find("different uv sets (TEXCOORD_0, TEXCOORD_1)") != std::string::npos);
   }
 }
+
+namespace {
+std::string replace_in_file(const std::string& path, const std::string& from, const std::string& to) {
+  std::ifstream f(path);
+  std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  const size_t at = text.find(from);
+  REQUIRE(at != std::string::npos);
+  text.replace(at, from.size(), to);
+  std::ofstream(path) << text;
+  return path;
+}
+}  // namespace
+
+TEST_CASE("KHR_texture_transform moves the uvs as the extension's GLSL defines", "[gltf]") {
+  TempDir tmp;
+  // Offset 0.5 and scale 0.5 in u: every point of the quad samples the right (green) texel.
+  auto scene = load_scene(replace_in_file(
+      write_emissive_quad(tmp, "shift.gltf"), R"("texCoord": 1})",
+      R"("texCoord": 1, "extensions": {"KHR_texture_transform": {"offset": [0.5, 0], "scale": [0.5, 1]}}})"));
+  const Mesh& m = scene->meshes[0];
+  REQUIRE(m.uvs.size() == 4);
+  CHECK(m.uvs[0].x == Approx(0.5f));  // (0, 1) → (0.5, 1)
+  CHECK(m.uvs[1].x == Approx(1.0f));  // (1, 1) → (1, 1)
+  CHECK(m.uvs[0].y == Approx(1.0f));
+  // Rotation by π/2: (u, v) → (u cos − v sin, u sin + v cos) = (−v, u).
+  auto rotated = load_scene(
+      replace_in_file(write_emissive_quad(tmp, "rot.gltf"), R"("texCoord": 1})",
+                      R"("texCoord": 1, "extensions": {"KHR_texture_transform": {"rotation": 1.5707963267948966}}})"));
+  const Mesh& r = rotated->meshes[0];
+  REQUIRE(r.uvs.size() == 4);
+  CHECK(r.uvs[1].x == Approx(-1.f).margin(1e-6));  // (1, 1) → (−1, 1)
+  CHECK(r.uvs[1].y == Approx(1.f).margin(1e-6));
+  CHECK(r.uvs[3].x == Approx(0.f).margin(1e-6));  // (0, 0) → (0, 0)
+  // Required by the file: loads, since it is implemented.
+  CHECK_NOTHROW(load_scene(replace_in_file(write_emissive_quad(tmp, "req.gltf"), R"({"asset")",
+                                           R"({"extensionsRequired": ["KHR_texture_transform"], "asset")")));
+  // A texCoord override inside the transform is refused by name, as are non-numbers.
+  CHECK_THROWS_WITH(
+      load_scene(replace_in_file(write_emissive_quad(tmp, "tc.gltf"), R"("texCoord": 1})",
+                                 R"("texCoord": 1, "extensions": {"KHR_texture_transform": {"texCoord": 0}}})")),
+      Catch::Contains("texCoord overrides are not supported"));
+  CHECK_THROWS_WITH(
+      load_scene(replace_in_file(write_emissive_quad(tmp, "nan.gltf"), R"("texCoord": 1})",
+                                 R"("texCoord": 1, "extensions": {"KHR_texture_transform": {"offset": [1, "x"]}}})")),
+      Catch::Contains("offset must be two numbers"));
+}
+
+TEST_CASE("quantized attributes (KHR_mesh_quantization) and normalized integer uvs are decoded", "[gltf]") {
+  TempDir tmp;
+  // The cube with SHORT normalized positions (±32767 → ±1) and UNSIGNED_BYTE normalized uvs.
+  const int16_t p[8][4] = {{-32767, -32767, -32767, 0}, {32767, -32767, -32767, 0}, {32767, 32767, -32767, 0},
+                           {-32767, 32767, -32767, 0},  {-32767, -32767, 32767, 0}, {32767, -32767, 32767, 0},
+                           {32767, 32767, 32767, 0},    {-32767, 32767, 32767, 0}};
+  const uint8_t uv[8][2] = {{0, 0}, {255, 0}, {255, 255}, {0, 255}, {0, 0}, {255, 0}, {255, 255}, {0, 255}};
+  const uint16_t idx[36] = {0, 2, 1, 0, 3, 2, 4, 5, 6, 4, 6, 7, 0, 1, 5, 0, 5, 4,
+                            3, 7, 6, 3, 6, 2, 0, 4, 7, 0, 7, 3, 1, 2, 6, 1, 6, 5};
+  std::ofstream bin(tmp("q.bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(p), sizeof p);      // 0..64 (stride 8)
+  bin.write(reinterpret_cast<const char*>(uv), sizeof uv);    // 64..80
+  bin.write(reinterpret_cast<const char*>(idx), sizeof idx);  // 80..152
+  bin.close();
+  std::ofstream(tmp("q.gltf")) << R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+  "extensionsUsed": ["KHR_mesh_quantization"], "extensionsRequired": ["KHR_mesh_quantization"],
+  "nodes": [{"mesh": 0}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
+  "buffers": [{"uri": "q.bin", "byteLength": 152}],
+  "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 64, "byteStride": 8},
+                  {"buffer": 0, "byteOffset": 64, "byteLength": 16}, {"buffer": 0, "byteOffset": 80, "byteLength": 72}],
+  "accessors": [{"bufferView": 0, "componentType": 5122, "normalized": true, "count": 8, "type": "VEC3",
+                 "min": [-32767, -32767, -32767], "max": [32767, 32767, 32767]},
+                {"bufferView": 1, "componentType": 5121, "normalized": true, "count": 8, "type": "VEC2"},
+                {"bufferView": 2, "componentType": 5123, "count": 36, "type": "SCALAR"}]})";
+  auto scene = load_scene(tmp("q.gltf"));
+  const Mesh& m = scene->meshes[0];
+  REQUIRE(m.vertex_count() == 8);
+  CHECK(m.positions[6][0] == 1.f);
+  CHECK(m.positions[0][2] == -1.f);
+  REQUIRE(m.uvs.size() == 8);
+  CHECK(m.uvs[2].x == 1.f);
+  CHECK(m.uvs[1].y == 0.f);
+}
