@@ -10,7 +10,16 @@
 namespace bl {
 
 struct InputError : std::runtime_error {
-  using std::runtime_error::runtime_error;
+  // One line whatever the input held: control characters (a newline in a glTF material name, a
+  // file name, an extension name) become '?'.
+  explicit InputError(std::string message) : std::runtime_error(one_line(std::move(message))) {}
+
+ private:
+  static std::string one_line(std::string s) {
+    for (char& c : s)
+      if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) c = '?';
+    return s;
+  }
 };
 
 // "<file>: <problem>" — the one-line form every loader uses.

@@ -58,10 +58,8 @@ void check_required_extensions(const std::string& path, const std::string& json_
   for (const auto& name : *it) {
     if (!name.is_string()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
     if (implemented.count(name.get<std::string>())) continue;
-    std::string printable = name.get<std::string>().substr(0, 100);
-    for (char& ch : printable)
-      if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) ch = '?';
-    throw file_error(path, "requires the glTF extension '" + printable + "', which backlight does not support");
+    throw file_error(path, "requires the glTF extension '" + name.get<std::string>().substr(0, 100) +
+                               "', which backlight does not support");
   }
 }
 
