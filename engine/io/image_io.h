@@ -10,7 +10,7 @@ namespace bl {
 struct Image {
   int width = 0, height = 0, channels = 3;
   std::vector<float> data;
-  bool from_float_file = false;  // the file stored floats (EXR, HDR, float TIFF)
+  bool from_float_file = false;  // the file stored floats (EXR, HDR, PFM)
 
   Image() = default;
   Image(int w, int h, int c = 3) : width(w), height(h), channels(c), data(size_t(w) * size_t(h) * size_t(c), 0.f) {}
