@@ -15,13 +15,13 @@
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
 #include "engine/integrators/gradient.h"
-#include "engine/io/image_io.h"
 #include "engine/integrators/loss.h"
-#include "engine/optimize/optimizer.h"
-#include "engine/io/progress.h"
 #include "engine/integrators/render.h"
-#include "engine/scene/scene_load.h"
 #include "engine/integrators/taped.h"
+#include "engine/io/image_io.h"
+#include "engine/io/progress.h"
+#include "engine/optimize/optimizer.h"
+#include "engine/scene/scene_load.h"
 
 using namespace bl;
 namespace fs = std::filesystem;
@@ -153,6 +153,7 @@ struct GradFlags {
   std::string target, adjoint_image, out, method = "prb", loss = "l2", memory_budget;
   std::optional<uint64_t> adjoint_seed;
   std::vector<std::string> params;
+  bool replay_whole_paths = false;
   void add_to(CLI::App* app) {
     app->add_option("--target", target, "Target image the loss compares the render with");
     app->add_option("--adjoint-image", adjoint_image,
@@ -164,6 +165,9 @@ struct GradFlags {
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
     app->add_option("--memory-budget", memory_budget,
                     "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
+    app->add_flag("--replay-whole-paths", replay_whole_paths,
+                  "prb/rb: replay each path to its end, not only to its last vertex that can produce a derivative "
+                  "(same gradient, slower; for benchmarks)");
   }
 };
 
@@ -219,6 +223,7 @@ int cmd_grad(SceneFlags& f, const GradFlags& g) {
   GradientRequest rq = make_request(f, *scene, g.method, g.loss, g.target, g.adjoint_image, target, adjoint);
   if (g.adjoint_seed) rq.adjoint_seed = *g.adjoint_seed;
   if (!g.memory_budget.empty()) rq.memory_budget = parse_memory_size(g.memory_budget);
+  rq.pass.replay_whole_paths = g.replay_whole_paths;
   scene->params.require_grad(g.params);
   GradientResult r = compute_gradient(*scene, rq);
   write_gradient_outputs(*scene, rq, r, g.out);

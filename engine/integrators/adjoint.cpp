@@ -5,10 +5,11 @@
 #include <tbb/enumerable_thread_specific.h>
 
 #include <atomic>
+#include <limits>
 
 #include "engine/integrators/path.h"
-#include "engine/io/progress.h"
 #include "engine/integrators/render.h"
+#include "engine/io/progress.h"
 
 namespace bl {
 
@@ -37,6 +38,9 @@ struct ReplayObserver {
   Vec3f delta;                // ∂loss/∂(this sample's radiance)
   Vec3f total_radiance;       // this sample's primal estimate, from the first run of the same path
   VisibilityBits visibility;  // that run's shadow-ray answers
+  // The last vertex at which that run met a derivative site: later iterations add nothing.
+  int last_site = std::numeric_limits<int>::max();
+  bool media_grads = true;  // whether shadow rays through media carry derivatives
 
   // BSDF gradients of one vertex (from NEE and from the BSDF sample) are summed and pushed into
   // the textures once, when the path moves on: half the texel scatters of doing it per event.
@@ -66,6 +70,8 @@ struct ReplayObserver {
     return replay_occluded(s, visibility, vertex, origin, direction, tmax);
   }
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
+  bool follows(int vertex) const { return vertex <= last_site; }
+  void reached(int, int) {}
   void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
            const Vec3f& emitter_weight, const Vec3f&) {
     if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
@@ -82,12 +88,13 @@ struct ReplayObserver {
       m.backprop_sigma_t(scene.params, x, -rest / (majorant - sigma), grads);
   }
   void medium_nee(const Medium& m, const Vec3f&, const Vec3f& wi, const Vec3f& wl, float phase_value,
-                  const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution, const ShadowRef& shadow) {
+                  const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution,
+                  const ShadowRef& shadow) {
     emitter_backprop(scene, e, delta * emitter_weight, grads);
     const float weight = dot(delta, contribution);
     if (weight == 0.f) return;
     if (phase_value > 0.f) m.backprop_phase(scene.params, wi, wl, weight / phase_value, grads);
-    shadow_transmittance_backprop(scene, shadow, weight, grads);
+    if (media_grads) shadow_transmittance_backprop(scene, shadow, weight, grads);
   }
   void medium_vertex(const Medium& m, const Vec3f& x, const Vec3f& wi, const Vec3f& wo, const Vec3f& albedo,
                      const Vec3f& radiance_before, const Vec3f& radiance_after_nee) {
@@ -102,7 +109,7 @@ struct ReplayObserver {
     }
   }
   void shadow(const ShadowRef& ref, const Vec3f& contribution) {
-    shadow_transmittance_backprop(scene, ref, dot(delta, contribution), grads);
+    if (media_grads) shadow_transmittance_backprop(scene, ref, dot(delta, contribution), grads);
   }
   void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
                const Vec3f& radiance_so_far, int, const Ray&) {
@@ -124,6 +131,7 @@ struct RadiativeObserver {
   Vec3f delta;
   uint64_t seed, pixel, sample;
   VisibilityBits visibility;
+  int last_site;
   ReplayObserver local{scene, grads, delta, Vec3f(0.f), visibility};
 
   void emission(const EmissionRef& e, const Vec3f& w, const Vec3f& c) { local.emission(e, w, c); }
@@ -152,6 +160,8 @@ struct RadiativeObserver {
     return replay_occluded(s, visibility, vertex, origin, direction, tmax);
   }
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
+  bool follows(int vertex) const { return vertex <= last_site; }
+  void reached(int, int) {}
 };
 
 }  // namespace
@@ -166,7 +176,13 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   struct SampleRecord {
     Vec3f radiance;
     VisibilityBits visibility;
+    int last_site = 0;
   };
+  // Where derivatives can arise; replays stop after a path's last such vertex (and paths that
+  // never meet one are not replayed at all). The gradient is the same: what is skipped adds
+  // nothing.
+  const DerivativeSites sites = derivative_sites(scene, GradientAccumulator(&scene.params));
+  const bool media_grads = sites.everywhere;
   tbb::enumerable_thread_specific<std::vector<SampleRecord>> scratch(
       [&] { return std::vector<SampleRecord>(size_t(o.spp)); });
   Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
@@ -180,16 +196,18 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
         auto start_of = [&](const PathSampler& sampler) {
-          return PathStart{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
-                           cam.medium};
+          return PathStart{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1,
+                           0.f, cam.medium};
         };
         // 1. Primal estimates of this pixel's samples.
         Vec3d sum(0.0);  // the same summation as render(), so both give the same image
         for (int s = 0; s < o.spp; ++s) {
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           VisibilityRecorder recorder;
+          recorder.sites = o.replay_whole_paths ? nullptr : &sites;
           records[size_t(s)].radiance = trace_path<float>(scene, start_of(sampler), sampler, recorder);
           records[size_t(s)].visibility = recorder.bits;
+          records[size_t(s)].last_site = o.replay_whole_paths ? std::numeric_limits<int>::max() : recorder.last_site;
           sum += Vec3d(records[size_t(s)].radiance);
         }
         const Vec3f value(sum / double(o.spp));
@@ -200,13 +218,16 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
         if (is_zero(delta)) continue;
         // 3. Transport δ back through the scene.
         for (int s = 0; s < o.spp; ++s) {
+          const SampleRecord& record = records[size_t(s)];
+          if (record.last_site < 1) continue;  // no vertex of this path can produce a derivative
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           if (method == AdjointMethod::Prb) {
-            ReplayObserver replay{scene, grads, delta, records[size_t(s)].radiance, records[size_t(s)].visibility};
+            ReplayObserver replay{scene,      grads, delta, record.radiance, record.visibility, record.last_site,
+                                  media_grads};
             trace_path<float>(scene, start_of(sampler), sampler, replay);
             replay.flush();
           } else {
-            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s), records[size_t(s)].visibility};
+            RadiativeObserver rb{scene, grads, delta, o.seed, pixel, uint64_t(s), record.visibility, record.last_site};
             trace_path<float>(scene, start_of(sampler), sampler, rb);
             rb.flush();
           }

@@ -14,10 +14,11 @@
 // for the same random numbers.
 #include <cmath>
 #include <limits>
+#include <vector>
 
 #include "engine/core/sampler.h"
-#include "kernels/medium/medium.h"
 #include "engine/scene/scene.h"
+#include "kernels/medium/medium.h"
 
 namespace bl {
 
@@ -69,7 +70,55 @@ struct NoObserver {
   // Whether next-event estimation at `vertex` can contribute at all. Only a replay knows better
   // (from the first run's shadow-ray answers); it then skips the emitter sample and both evals.
   bool nee_may_contribute(int) const { return true; }
+  // Iteration `vertex` of the loop reached `site`: a mesh index, kSiteEscape or kSiteMedium.
+  void reached(int, int) {}
+  // Whether the path is worth following into iteration `vertex` (a replay stops after the last
+  // vertex that can produce a derivative).
+  bool follows(int) const { return true; }
 };
+
+inline constexpr int kSiteEscape = -1;  // the ray left the scene (environment emission)
+inline constexpr int kSiteMedium = -2;  // a real collision in a medium
+
+// Where a derivative event of an adjoint pass can be non-zero, decided once per pass from which
+// parameters want gradients. A surface counts if its material reads such a parameter, if it is
+// an emitter whose radiance does, or, when any emitter's radiance does, if it is a scattering
+// surface at all (its light sample reaches that emitter). Escaped rays count when the
+// environment's radiance wants a gradient, medium vertices when any emitter does. With a
+// gradient on any medium parameter everything counts: null collisions and shadow rays through
+// media carry derivatives at every iteration.
+struct DerivativeSites {
+  std::vector<uint8_t> mesh;
+  bool escape = false, medium = false, everywhere = false;
+
+  bool at(int site) const {
+    if (everywhere) return true;
+    if (site == kSiteEscape) return escape;
+    if (site == kSiteMedium) return medium;
+    return mesh[size_t(site)] != 0;
+  }
+};
+
+inline DerivativeSites derivative_sites(const Scene& scene, const GradientAccumulator& grads) {
+  DerivativeSites d;
+  bool emitters = grads.wants(scene.environment.present ? scene.environment.param : -1);
+  for (const AreaEmitter& e : scene.area_emitters) emitters = emitters || grads.wants(e.radiance.param);
+  for (const Medium& m : scene.media)
+    d.everywhere =
+        d.everywhere || grads.wants(m.density) || grads.wants(m.scale) || grads.wants(m.albedo) || grads.wants(m.g);
+  d.escape = scene.environment.present && grads.wants(scene.environment.param);
+  d.medium = emitters;
+  d.mesh.resize(scene.meshes.size());
+  for (size_t i = 0; i < scene.meshes.size(); ++i) {
+    const Mesh& mesh = scene.meshes[i];
+    const Material& material = scene.materials[size_t(mesh.material)];
+    if (material.is_null) continue;  // crossed, never a vertex
+    const bool own_emission =
+        mesh.emitter >= 0 && grads.wants(scene.area_emitters[size_t(mesh.emitter)].radiance.param);
+    d.mesh[i] = material.wants_grad(grads) || own_emission || emitters;
+  }
+  return d;
+}
 
 // Shadow-ray answers of one path, one bit per surface vertex. The adjoint pass records them while
 // computing a sample's radiance and hands them to the replay of the same sample: the answers are a
@@ -79,9 +128,15 @@ struct VisibilityBits {
   uint64_t queried = 0, blocked = 0;
 };
 
-// First run of a path in the adjoint pass: no events, shadow-ray answers recorded.
+// First run of a path in the adjoint pass: no events; shadow-ray answers recorded, and the last
+// vertex at which a derivative event can be non-zero (0: none), where the replay may stop.
 struct VisibilityRecorder : NoObserver {
+  const DerivativeSites* sites = nullptr;  // null: every vertex counts
   VisibilityBits bits;
+  int last_site = 0;
+  void reached(int vertex, int site) {
+    if (!sites || sites->at(site)) last_site = vertex;
+  }
   bool occluded(const Scene& scene, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
     const bool blocked = scene.occluded(origin, direction, tmax);
     if (vertex < VisibilityBits::kVertices) {
@@ -144,10 +199,9 @@ T shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, 
     const float seg = hit.mesh < 0 ? tmax : hit.t;
     if (medium >= 0) {
       const Medium& med = scene.media[size_t(medium)];
-      tr = tr * medium_transmittance<T>(med, scene.params, o, d, seg, rng,
-                                        [&](const Vec3f& x, float sigma, float majorant, bool) {
-                                          on_point(med, x, sigma, majorant);
-                                        });
+      tr = tr * medium_transmittance<T>(
+                    med, scene.params, o, d, seg, rng,
+                    [&](const Vec3f& x, float sigma, float majorant, bool) { on_point(med, x, sigma, majorant); });
       if (value_of(tr) == 0.f) return tr;
     }
     if (hit.mesh < 0) return tr;
@@ -208,11 +262,12 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
   Ray ray = start.ray;
   float mis_bsdf_pdf = start.bsdf_pdf;
   int medium = start.medium;
-  float travelled = 0.f;      // distance from the last real vertex along `ray`'s direction (null crossings)
-  uint32_t flight = 0;        // free-flight tracking streams used so far
+  float travelled = 0.f;  // distance from the last real vertex along `ray`'s direction (null crossings)
+  uint32_t flight = 0;    // free-flight tracking streams used so far
   int null_crossings = 0;
 
   for (int vertex = start.first_vertex;;) {
+    if (!observer.follows(vertex)) break;
     const Hit hit = scene.geometry->intersect(ray);
     const bool visible_emitter = !(vertex == 1 && st.hide_emitters);
 
@@ -222,12 +277,15 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       TrackingSampler rng(sampler.key(), int(flight++), 0x10000u);
       const float t_max = hit.mesh < 0 ? std::numeric_limits<float>::infinity() : hit.t;
       const Vec3f radiance_so_far = value_of(radiance);
-      const FreeFlight<T> ff = medium_free_flight<T>(
-          med, params, ray.origin, ray.direction, t_max, rng, [&](const Vec3f& x, float sigma, float majorant, bool real) {
-            if constexpr (Observer::kActive) observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
-          });
+      const FreeFlight<T> ff =
+          medium_free_flight<T>(med, params, ray.origin, ray.direction, t_max, rng,
+                                [&](const Vec3f& x, float sigma, float majorant, bool real) {
+                                  if constexpr (Observer::kActive)
+                                    observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
+                                });
       beta = beta * ff.weight;
       if (ff.collided) {
+        observer.reached(vertex, kSiteMedium);
         if (st.max_depth >= 0 && vertex >= st.max_depth) break;
         const Vec3f p = ray.origin + ray.direction * ff.t;
         const Vec3f wi_phase = -ray.direction;  // Mitsuba's wi: back along the path
@@ -239,11 +297,12 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
                                 scene.emitter_count() - 1);
           Vec2f u{sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))};
-          EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, p, u) : scene.environment.sample(u);
+          EmitterSample es =
+              chosen < area_count ? scene.sample_area_emitter(chosen, p, u) : scene.environment.sample(u);
           if (es.pdf > 0.f) {
             const T f = hg_eval(phase, wi_phase, es.wi);
-            const float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
-                                                       : length(es.point - p) * (1.f - 1e-3f);
+            const float tmax =
+                std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - p) * (1.f - 1e-3f);
             if (!observer.occluded(scene, vertex, p, es.wi, tmax)) {
               TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
               const T tr = shadow_transmittance<T>(scene, p, es.wi, tmax, medium, shadow_rng);
@@ -258,8 +317,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                 const EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
                 const Vec3f emitter_weight =
                     value_of(beta) * value_of(albedo) * (value_of(f) * value_of(tr) * w_over_pdf);
-                observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight,
-                                    value_of(contribution), ShadowRef{p, es.wi, tmax, medium, sampler.key(), vertex});
+                observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight, value_of(contribution),
+                                    ShadowRef{p, es.wi, tmax, medium, sampler.key(), vertex});
               }
             }
           }
@@ -288,6 +347,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
     // Escaped: environment emission, MIS-weighted against environment sampling.
     if (hit.mesh < 0) {
+      observer.reached(vertex, kSiteEscape);
       if (scene.environment.present && visible_emitter) {
         float w =
             mis_bsdf_pdf > 0.f ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction)) : 1.f;
@@ -299,6 +359,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       break;
     }
 
+    observer.reached(vertex, hit.mesh);
     const SurfacePoint sp = scene.surface_point(hit, ray);
     const Mesh& mesh = scene.meshes[size_t(sp.mesh)];
     const Material& material = scene.materials[size_t(mesh.material)];
@@ -321,8 +382,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       if (cos_shading > 0.f) {
         float w = 1.f;
         if (mis_bsdf_pdf > 0.f)
-          w = power_heuristic(mis_bsdf_pdf, select_pdf * emitter.pdf(travelled + hit.t,
-                                                                     std::abs(dot(sp.geometric_normal, wo_world))));
+          w = power_heuristic(
+              mis_bsdf_pdf, select_pdf * emitter.pdf(travelled + hit.t, std::abs(dot(sp.geometric_normal, wo_world))));
         Spectrum<T> contribution = beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
         radiance += contribution;
         if constexpr (Observer::kActive)

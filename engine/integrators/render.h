@@ -13,6 +13,9 @@ struct PassOptions {
   int spp = 16;
   uint64_t seed = 0;
   bool progress = true;
+  // Adjoint passes: replay every path to its end instead of stopping after its last vertex that
+  // can produce a derivative (same gradient, slower; for tests and benchmarks).
+  bool replay_whole_paths = false;
 };
 
 struct PassStats {

@@ -3,6 +3,7 @@
 // finite differences in expectation over seeds (free-flight sampling depends on the density, so
 // same-seed differences jump; both sides are averaged over seeds and compared with |z| < 4),
 // with negative controls, majorant independence and exact zeros where no path reaches.
+#include <tbb/global_control.h>
 #include <catch2/catch.hpp>
 #include <nlohmann/json.hpp>
 
@@ -270,6 +271,45 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
       CHECK(norm > 0);
       CHECK(std::sqrt(diff) <= 1e-4 * std::sqrt(norm));
     }
+  }
+}
+
+TEST_CASE("pruned replays through media give the same gradient", "[media][replay]") {
+  // As for surfaces (test_gradients): one thread, bitwise equal gradients with and without
+  // stopping replays after the last vertex that can produce a derivative. A surface parameter
+  // alone leaves medium vertices out of the sites (shorter replays); any medium parameter makes
+  // every iteration a site (null collisions and shadow rays through the fog carry derivatives).
+  tbb::global_control one_thread(tbb::global_control::max_allowed_parallelism, 1);
+  FogOptions o;
+  o.resolution = 16;
+  auto scene = fog_scene(o);
+  const Image a = weights(16, 16);
+  const PixelAdjoint adjoint = [&](size_t pixel, const Vec3f&) {
+    return Vec3f(a.data[pixel * 3], a.data[pixel * 3 + 1], a.data[pixel * 3 + 2]);
+  };
+  for (const char* name : {"wall.albedo", "light.radiance", "fog.density", "fog.albedo", "fog.g"}) {
+    INFO(name);
+    scene->params.require_grad({name});
+    const Param& p = scene->params[scene->params.find(name)];
+    PassOptions po{0, 4, 11, false};
+    po.replay_whole_paths = true;
+    scene->params.zero_grad();
+    const PassStats whole = backward(*scene, po, AdjointMethod::Prb, adjoint);
+    const std::vector<float> expected = p.grad;
+    po.replay_whole_paths = false;
+    scene->params.zero_grad();
+    const PassStats pruned = backward(*scene, po, AdjointMethod::Prb, adjoint);
+    double n = 0;
+    for (float g : expected) n += double(g) * g;
+    CHECK(n > 0);
+    CHECK(p.grad == expected);
+    INFO("rays: whole paths " << whole.rays << ", pruned " << pruned.rays);
+    if (std::string(name) == "wall.albedo")
+      CHECK(double(pruned.rays) < 0.9 * double(whole.rays));
+    else if (std::string(name).rfind("fog.", 0) == 0)
+      CHECK(pruned.rays == whole.rays);
+    else
+      CHECK(pruned.rays <= whole.rays);
   }
 }
 
