@@ -41,6 +41,13 @@ struct ReplayObserver {
   // The last vertex at which that run met a derivative site: later iterations add nothing.
   int last_site = std::numeric_limits<int>::max();
   bool media_grads = true;  // whether shadow rays through media carry derivatives
+  // The tentative collisions of the shadow ray being tracked (per-thread scratch, reused).
+  std::vector<ShadowPoint>* shadow_points = nullptr;
+
+  void begin_shadow() { shadow_points->clear(); }
+  void shadow_point(const ShadowPoint& p) {
+    if (media_grads) shadow_points->push_back(p);
+  }
 
   // BSDF gradients of one vertex (from NEE and from the BSDF sample) are summed and pushed into
   // the textures once, when the path moves on: half the texel scatters of doing it per event.
@@ -88,13 +95,12 @@ struct ReplayObserver {
       m.backprop_sigma_t(scene.params, x, -rest / (majorant - sigma), grads);
   }
   void medium_nee(const Medium& m, const Vec3f&, const Vec3f& wi, const Vec3f& wl, float phase_value,
-                  const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution,
-                  const ShadowRef& shadow) {
+                  const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution) {
     emitter_backprop(scene, e, delta * emitter_weight, grads);
     const float weight = dot(delta, contribution);
     if (weight == 0.f) return;
     if (phase_value > 0.f) m.backprop_phase(scene.params, wi, wl, weight / phase_value, grads);
-    if (media_grads) shadow_transmittance_backprop(scene, shadow, weight, grads);
+    shadow_transmittance_backprop(scene, *shadow_points, weight, grads);
   }
   void medium_vertex(const Medium& m, const Vec3f& x, const Vec3f& wi, const Vec3f& wo, const Vec3f& albedo,
                      const Vec3f& radiance_before, const Vec3f& radiance_after_nee) {
@@ -108,8 +114,8 @@ struct ReplayObserver {
       if (p > 0.f) m.backprop_phase(scene.params, wi, wo, continuation / p, grads);
     }
   }
-  void shadow(const ShadowRef& ref, const Vec3f& contribution) {
-    if (media_grads) shadow_transmittance_backprop(scene, ref, dot(delta, contribution), grads);
+  void shadow(const Vec3f& contribution) {
+    shadow_transmittance_backprop(scene, *shadow_points, dot(delta, contribution), grads);
   }
   void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
                const Vec3f& radiance_so_far, int, const Ray&) {
@@ -154,8 +160,10 @@ struct RadiativeObserver {
   void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
                      const Vec3f&) {}
   void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,
-                  const Vec3f&, const ShadowRef&) {}
-  void shadow(const ShadowRef&, const Vec3f&) {}
+                  const Vec3f&) {}
+  void begin_shadow() {}
+  void shadow_point(const ShadowPoint&) {}
+  void shadow(const Vec3f&) {}
   bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
     return replay_occluded(s, visibility, vertex, origin, direction, tmax);
   }
@@ -178,20 +186,26 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
     VisibilityBits visibility;
     int last_site = 0;
   };
+  struct Scratch {
+    std::vector<SampleRecord> records;
+    std::vector<ShadowPoint> shadow_points;  // one shadow ray's tentative collisions
+  };
   // Where derivatives can arise; replays stop after a path's last such vertex (and paths that
   // never meet one are not replayed at all). The gradient is the same: what is skipped adds
   // nothing.
   const DerivativeSites sites = derivative_sites(scene, GradientAccumulator(&scene.params));
   const bool media_grads = sites.everywhere;
-  tbb::enumerable_thread_specific<std::vector<SampleRecord>> scratch(
-      [&] { return std::vector<SampleRecord>(size_t(o.spp)); });
+  tbb::enumerable_thread_specific<Scratch> scratch([&] {
+    return Scratch{std::vector<SampleRecord>(size_t(o.spp)), {}};
+  });
   Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
                     uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
   std::atomic<uint64_t> rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     const uint64_t rays_before = Geometry::thread_ray_count();
     GradientAccumulator& grads = sink.local();
-    std::vector<SampleRecord>& records = scratch.local();
+    Scratch& thread_scratch = scratch.local();
+    std::vector<SampleRecord>& records = thread_scratch.records;
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
@@ -222,8 +236,14 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
           if (record.last_site < 1) continue;  // no vertex of this path can produce a derivative
           PathSampler sampler(o.seed, pixel, uint64_t(s));
           if (method == AdjointMethod::Prb) {
-            ReplayObserver replay{scene,      grads, delta, record.radiance, record.visibility, record.last_site,
-                                  media_grads};
+            ReplayObserver replay{scene,
+                                  grads,
+                                  delta,
+                                  record.radiance,
+                                  record.visibility,
+                                  record.last_site,
+                                  media_grads,
+                                  &thread_scratch.shadow_points};
             trace_path<float>(scene, start_of(sampler), sampler, replay);
             replay.flush();
           } else {

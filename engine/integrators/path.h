@@ -38,13 +38,12 @@ struct VertexRef {
   int vertex = 0;
 };
 
-// A shadow ray through media, enough to track it again with the same random numbers.
-struct ShadowRef {
-  Vec3f origin, direction;
-  float tmax = 0.f;
-  int medium = -1;  // the medium it starts in
-  uint64_t path_key = 0;
-  int vertex = 0;
+// A tentative collision of ratio tracking on a shadow ray: the transmittance estimate carries the
+// factor 1 − σ_t(x)/σ̄ for it.
+struct ShadowPoint {
+  const Medium* medium;
+  Vec3f x;
+  float sigma, majorant;
 };
 
 // Observer that ignores everything (primal and taped modes).
@@ -56,9 +55,11 @@ struct NoObserver {
   void flight_collision(const Medium&, const Vec3f&, float, float, bool, const Vec3f&) {}
   void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
                      const Vec3f&) {}
+  void begin_shadow() {}
+  void shadow_point(const ShadowPoint&) {}
   void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,
-                  const Vec3f&, const ShadowRef&) {}
-  void shadow(const ShadowRef&, const Vec3f&) {}
+                  const Vec3f&) {}
+  void shadow(const Vec3f&) {}
   void emission(const EmissionRef&, const Vec3f&, const Vec3f&) {}
   void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
   void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
@@ -219,18 +220,31 @@ T shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, 
 
 inline TrackingSampler shadow_sampler(uint64_t path_key, int vertex) { return {path_key, vertex, 1u}; }
 
+// shadow_transmittance for the path loop: an active observer hears of every tentative collision
+// (a replay keeps them to differentiate the estimate without tracking the ray a second time).
+template <class T, class Observer>
+T observed_shadow_transmittance(const Scene& scene, const Vec3f& o, const Vec3f& d, float tmax, int medium,
+                                TrackingSampler& rng, Observer& observer) {
+  if constexpr (Observer::kActive) {
+    observer.begin_shadow();
+    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng,
+                                   [&](const Medium& m, const Vec3f& x, float sigma, float majorant) {
+                                     observer.shadow_point(ShadowPoint{&m, x, sigma, majorant});
+                                   });
+  } else {
+    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng);
+  }
+}
+
 // The derivative of a ratio-tracked transmittance Π (1 − σ_t(x_i)/σ̄_i): each point contributes
-// −∂σ_t(x_i) / (σ̄_i − σ_t(x_i)) to ∂ log T. Tracks the same shadow ray again (same stream) and
-// adds weight · that into the media's parameters (weight = ⟨δ, contribution the ray carried⟩).
-inline void shadow_transmittance_backprop(const Scene& scene, const ShadowRef& ref, float weight,
+// −∂σ_t(x_i) / (σ̄_i − σ_t(x_i)) to ∂ log T; adds weight · that into the media's parameters
+// (weight = ⟨δ, contribution the ray carried⟩).
+inline void shadow_transmittance_backprop(const Scene& scene, const std::vector<ShadowPoint>& points, float weight,
                                           GradientAccumulator& grads) {
   if (weight == 0.f) return;
-  TrackingSampler rng = shadow_sampler(ref.path_key, ref.vertex);
-  shadow_transmittance<float>(scene, ref.origin, ref.direction, ref.tmax, ref.medium, rng,
-                              [&](const Medium& m, const Vec3f& x, float sigma, float majorant) {
-                                if (m.wants_sigma_grad(grads) && majorant > sigma)
-                                  m.backprop_sigma_t(scene.params, x, -weight / (majorant - sigma), grads);
-                              });
+  for (const ShadowPoint& p : points)
+    if (p.medium->wants_sigma_grad(grads) && p.majorant > p.sigma)
+      p.medium->backprop_sigma_t(scene.params, p.x, -weight / (p.majorant - p.sigma), grads);
 }
 
 // Traces one path and returns its radiance estimate. Observer events (float values only):
@@ -248,9 +262,11 @@ inline void shadow_transmittance_backprop(const Scene& scene, const ShadowRef& r
 // point stays at the last real vertex. Shadow rays cross null surfaces, their transmittance
 // estimated by ratio tracking. Medium events for the adjoint (float values):
 //  flight_collision(medium, x, σ_t, σ̄, real, radiance_so_far)   every tentative collision
-//  medium_nee(medium, x, wi, wl, p(wi, wl), ref, emitter_weight, contribution, shadow)
+//  medium_nee(medium, x, wi, wl, p(wi, wl), ref, emitter_weight, contribution)
 //  medium_vertex(medium, x, wi, wo, albedo, radiance_before_vertex, radiance_after_its_nee)
-//  shadow(shadow, contribution)   the transmittance of a surface vertex's light sample
+//  shadow(contribution)   the transmittance of a surface vertex's light sample
+//  begin_shadow(), shadow_point(point)   the tracking of the shadow ray the next medium_nee or
+//                                        shadow event is about
 template <class T, class Observer>
 Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSampler& sampler, Observer& observer) {
   const IntegratorSettings& st = scene.settings;
@@ -305,7 +321,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                 std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - p) * (1.f - 1e-3f);
             if (!observer.occluded(scene, vertex, p, es.wi, tmax)) {
               TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
-              const T tr = shadow_transmittance<T>(scene, p, es.wi, tmax, medium, shadow_rng);
+              const T tr = observed_shadow_transmittance<T>(scene, p, es.wi, tmax, medium, shadow_rng, observer);
               Spectrum<T> emitted = chosen < area_count
                                         ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                         : scene.environment.eval<T>(params, es.wi);
@@ -317,8 +333,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                 const EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
                 const Vec3f emitter_weight =
                     value_of(beta) * value_of(albedo) * (value_of(f) * value_of(tr) * w_over_pdf);
-                observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight, value_of(contribution),
-                                    ShadowRef{p, es.wi, tmax, medium, sampler.key(), vertex});
+                observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight, value_of(contribution));
               }
             }
           }
@@ -424,7 +439,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             if (!scene.media.empty()) {
               TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
               shadow_medium = scene.medium_after(mesh, es.wi, sp.geometric_normal, medium);
-              tr = shadow_transmittance<T>(scene, origin, es.wi, tmax, shadow_medium, shadow_rng);
+              tr = observed_shadow_transmittance<T>(scene, origin, es.wi, tmax, shadow_medium, shadow_rng, observer);
             }
             float light_pdf = es.pdf * select_pdf;
             float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
@@ -433,9 +448,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             if constexpr (Observer::kActive) {
               Vec3f b = value_of(beta) * (value_of(tr) * w_over_pdf);
               observer.nee(vref, wi, eref, b * value_of(emitted), b * value_of(f), value_of(contribution));
-              if (!scene.media.empty())
-                observer.shadow(ShadowRef{origin, es.wi, tmax, shadow_medium, sampler.key(), vertex},
-                                value_of(contribution));
+              if (!scene.media.empty()) observer.shadow(value_of(contribution));
             }
           }
         }
