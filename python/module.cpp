@@ -1,0 +1,350 @@
+// The backlight Python module (pybind11): load a scene, read and write its parameters through
+// zero-copy NumPy views, render, and run adjoint passes. python/backlight/__init__.py re-exports
+// it; python/backlight/torch.py wraps render + backward as a torch.autograd.Function.
+//
+// Conventions: images are NumPy float32 arrays of shape (height, width, 3), row 0 at the top,
+// the layout of the film and of EXR files. Errors a user can cause (bad files, unknown names,
+// arrays of the wrong shape, dtype or layout, NaN) raise backlight.Error (a ValueError) with the
+// CLI's one-line message; renders release the GIL and run on the TBB pool.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cmath>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+#include "engine/integrators/gradient.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
+
+namespace py = pybind11;
+using namespace bl;
+
+namespace {
+
+// A loaded scene. Parameter views point into its ParamStore, whose buffers are never resized
+// after loading, and keep this object alive through their base.
+struct PyScene {
+  std::unique_ptr<Scene> scene;
+  std::string path;
+};
+
+std::vector<py::ssize_t> shape_of(const Param& p) { return {p.shape.begin(), p.shape.end()}; }
+
+std::vector<py::ssize_t> strides_of(const std::vector<py::ssize_t>& shape) {
+  std::vector<py::ssize_t> strides(shape.size());
+  py::ssize_t step = py::ssize_t(sizeof(float));
+  for (size_t i = shape.size(); i-- > 0;) {
+    strides[i] = step;
+    step *= shape[i];
+  }
+  return strides;
+}
+
+// A NumPy array that owns `values` (no copy).
+py::array_t<float> owning_array(std::vector<float>&& values, std::vector<py::ssize_t> shape) {
+  auto* heap = new std::vector<float>(std::move(values));
+  py::capsule owner(heap, [](void* p) { delete static_cast<std::vector<float>*>(p); });
+  auto strides = strides_of(shape);
+  return py::array_t<float>(shape, strides, heap->data(), owner);
+}
+
+py::array_t<float> image_array(Image&& image) {
+  return owning_array(std::move(image.data), {image.height, image.width, image.channels});
+}
+
+// Checks that `obj` is a C-contiguous float32 array of exactly `shape` with finite values and
+// returns it; `what` names it in the error.
+py::array_t<float> checked_array(const py::handle& obj, const std::vector<py::ssize_t>& shape,
+                                 const std::string& what) {
+  if (!py::isinstance<py::array>(obj))
+    throw InputError(what + ": expected a NumPy array, got " + std::string(py::str(obj.get_type().attr("__name__"))));
+  py::array a = py::reinterpret_borrow<py::array>(obj);
+  if (!a.dtype().is(py::dtype::of<float>()))
+    throw InputError(what + ": expected dtype float32, got " + std::string(py::str(a.dtype())) +
+                     " (convert with .astype(numpy.float32))");
+  std::string want = "(", got = "(";
+  for (size_t i = 0; i < shape.size(); ++i) want += (i ? ", " : "") + std::to_string(shape[i]);
+  for (py::ssize_t i = 0; i < a.ndim(); ++i) got += (i ? ", " : "") + std::to_string(a.shape(i));
+  want += ")", got += ")";
+  bool same = size_t(a.ndim()) == shape.size();
+  for (size_t i = 0; same && i < shape.size(); ++i) same = a.shape(py::ssize_t(i)) == shape[i];
+  if (!same) throw InputError(what + ": expected shape " + want + ", got " + got);
+  if (!(a.flags() & py::array::c_style))
+    throw InputError(what + ": the array is not C-contiguous (use numpy.ascontiguousarray)");
+  auto f = py::reinterpret_borrow<py::array_t<float>>(a);
+  const float* data = f.data();
+  for (py::ssize_t i = 0; i < f.size(); ++i)
+    if (!std::isfinite(data[i])) throw InputError(what + ": element " + std::to_string(i) + " is NaN or infinite");
+  return f;
+}
+
+// Parameters may have been written through their views since the last pass: check them (finite,
+// in range) and rebuild what depends on them (environment sampling, medium majorants).
+void refresh(PyScene& s) {
+  for (const Param& p : s.scene->params.all()) validate_param(p, s.path);
+  s.scene->prepare_sampling();
+}
+
+struct PassArgs {
+  std::optional<int> spp;
+  std::optional<uint64_t> seed;
+  int camera = 0;
+  std::optional<std::pair<int, int>> resolution;  // (width, height)
+};
+
+// Applies a pass's camera and resolution; restores the camera's film size when destroyed.
+class CameraScope {
+ public:
+  CameraScope(Scene& scene, const PassArgs& a) {
+    if (a.camera < 0 || size_t(a.camera) >= scene.cameras.size())
+      throw InputError("camera " + std::to_string(a.camera) + ": the scene has " +
+                       std::to_string(scene.cameras.size()) + " camera(s)");
+    camera_ = &scene.cameras[size_t(a.camera)];
+    saved_ = {camera_->width, camera_->height};
+    if (a.resolution) {
+      const auto [w, h] = *a.resolution;
+      if (w < 1 || h < 1 || w > 16384 || h > 16384)
+        throw InputError("resolution (" + std::to_string(w) + ", " + std::to_string(h) +
+                         "): expected (width, height), each in 1..16384");
+      camera_->width = w, camera_->height = h;
+      camera_->update();
+    }
+  }
+  ~CameraScope() {
+    camera_->width = saved_.first, camera_->height = saved_.second;
+    camera_->update();
+  }
+  CameraScope(const CameraScope&) = delete;
+  CameraScope& operator=(const CameraScope&) = delete;
+  const Camera& camera() const { return *camera_; }
+
+ private:
+  Camera* camera_ = nullptr;
+  std::pair<int, int> saved_;
+};
+
+PassOptions pass_options(const Scene& scene, const PassArgs& a) {
+  PassOptions o;
+  o.camera = a.camera;
+  o.spp = a.spp.value_or(scene.settings.spp);
+  if (o.spp < 1) throw InputError("spp must be ≥ 1");
+  limits::require_at_most("spp", "sample count", uint64_t(o.spp), limits::kSpp);
+  o.seed = a.seed.value_or(scene.settings.seed);
+  o.progress = false;
+  return o;
+}
+
+std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::dict>& set, std::optional<int> max_depth,
+                              std::optional<int> rr_depth) {
+  auto s = std::make_unique<PyScene>();
+  s->path = path;
+  s->scene = load_scene(path);
+  if (max_depth) {
+    if (*max_depth == 0 || *max_depth < -1) throw InputError("max_depth must be ≥ 1, or -1 for unlimited");
+    s->scene->settings.max_depth = *max_depth;
+  }
+  if (rr_depth) {
+    if (*rr_depth < 0) throw InputError("rr_depth must be ≥ 0");
+    s->scene->settings.rr_depth = *rr_depth;
+  }
+  if (set) {
+    for (const auto& [key, value] : *set) {
+      const std::string name = py::str(key);
+      // Numbers (Python or NumPy scalars), sequences of them, or a file name.
+      auto number = [&](const py::handle& v) {
+        if (!py::isinstance<py::bool_>(v) && !py::isinstance<py::str>(v) && PyNumber_Check(v.ptr())) {
+          PyObject* f = PyNumber_Float(v.ptr());
+          if (f) return std::string(py::repr(py::reinterpret_steal<py::object>(f)));
+          PyErr_Clear();
+        }
+        throw InputError("set: '" + name + "': expected a number, a list of numbers or an image file name");
+      };
+      std::string rhs;
+      if (py::isinstance<py::str>(value)) {
+        rhs = py::str(value);
+      } else if (py::isinstance<py::list>(value) || py::isinstance<py::tuple>(value) ||
+                 py::isinstance<py::array>(value)) {
+        for (const auto& v : py::list(py::reinterpret_borrow<py::object>(value)))
+          rhs += (rhs.empty() ? "" : ",") + number(v);
+      } else {
+        rhs = number(value);
+      }
+      apply_override(*s->scene, name + "=" + rhs);
+    }
+    s->scene->prepare_sampling();
+  }
+  return s;
+}
+
+py::array_t<float> render_py(PyScene& s, const PassArgs& a) {
+  refresh(s);
+  CameraScope scope(*s.scene, a);
+  const PassOptions o = pass_options(*s.scene, a);
+  Image image;
+  {
+    py::gil_scoped_release release;
+    image = render(*s.scene, o);
+  }
+  return image_array(std::move(image));
+}
+
+py::dict gradients_of(const Scene& scene) {
+  py::dict out;
+  for (const Param& p : scene.params.all())
+    if (p.requires_grad) out[py::str(p.name)] = owning_array(std::vector<float>(p.grad), shape_of(p));
+  return out;
+}
+
+void require(Scene& scene, const std::optional<std::vector<std::string>>& params) {
+  const std::vector<std::string> names = params.value_or(std::vector<std::string>{});
+  if (params && names.empty()) throw InputError("params: an empty list (omit it to differentiate every parameter)");
+  scene.params.require_grad(names);
+}
+
+py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& method, const PassArgs& a,
+                     std::optional<uint64_t> adjoint_seed, const std::optional<std::vector<std::string>>& params) {
+  refresh(s);
+  CameraScope scope(*s.scene, a);
+  const Camera& cam = scope.camera();
+  auto arr = checked_array(d_image, {cam.height, cam.width, 3}, "d_image");
+  Image adjoint(cam.width, cam.height, 3);
+  std::copy(arr.data(), arr.data() + arr.size(), adjoint.data.begin());
+  GradientRequest rq;
+  rq.method = parse_method(method);
+  rq.pass = pass_options(*s.scene, a);
+  rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
+  rq.adjoint_image = &adjoint;
+  require(*s.scene, params);
+  {
+    py::gil_scoped_release release;
+    compute_gradient(*s.scene, rq);
+  }
+  return gradients_of(*s.scene);
+}
+
+py::tuple grad_py(PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,
+                  const PassArgs& a, std::optional<uint64_t> adjoint_seed,
+                  const std::optional<std::vector<std::string>>& params) {
+  refresh(s);
+  CameraScope scope(*s.scene, a);
+  const Camera& cam = scope.camera();
+  auto arr = checked_array(target, {cam.height, cam.width, 3}, "target");
+  Image t(cam.width, cam.height, 3);
+  std::copy(arr.data(), arr.data() + arr.size(), t.data.begin());
+  GradientRequest rq;
+  rq.method = parse_method(method);
+  rq.loss = parse_loss(loss);
+  rq.pass = pass_options(*s.scene, a);
+  rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
+  rq.target = &t;
+  require(*s.scene, params);
+  GradientResult r;
+  {
+    py::gil_scoped_release release;
+    r = compute_gradient(*s.scene, rq);
+  }
+  return py::make_tuple(r.loss, gradients_of(*s.scene), image_array(std::move(r.image)));
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_backlight, m) {
+  m.doc() = "backlight: differentiable rendering with path replay backpropagation (see README)";
+  static py::exception<InputError> error(m, "Error", PyExc_ValueError);
+  py::register_exception_translator([](std::exception_ptr p) {
+    try {
+      if (p) std::rethrow_exception(p);
+    } catch (const InputError& e) {
+      error(e.what());
+    }
+  });
+
+  py::class_<PyScene>(m, "Scene", "A loaded scene (backlight.load). Parameters: scene.params.")
+      .def_property_readonly(
+          "params",
+          [](py::object self) {
+            PyScene& s = self.cast<PyScene&>();
+            py::dict out;
+            for (Param& p : s.scene->params.all()) {
+              auto shape = shape_of(p);
+              out[py::str(p.name)] = py::array_t<float>(shape, strides_of(shape), p.value.data(), self);
+            }
+            return out;
+          },
+          "Every parameter by name: a writable NumPy float32 view of the parameter store (no copy). Writes take "
+          "effect at the next render; values are checked (finite, in range) then.")
+      .def_property_readonly(
+          "param_info",
+          [](const PyScene& s) {
+            py::dict out;
+            for (const Param& p : s.scene->params.all())
+              out[py::str(p.name)] = py::dict(py::arg("shape") = py::cast(p.shape), py::arg("lower") = p.lower,
+                                              py::arg("upper") = p.upper);
+            return out;
+          },
+          "Shape and valid range of every parameter")
+      .def_property_readonly(
+          "cameras",
+          [](const PyScene& s) {
+            py::list out;
+            for (const Camera& c : s.scene->cameras) out.append(py::make_tuple(c.width, c.height));
+            return out;
+          },
+          "Film size (width, height) of each camera")
+      .def_property_readonly(
+          "spp", [](const PyScene& s) { return s.scene->settings.spp; }, "Samples per pixel of the scene file")
+      .def_property_readonly(
+          "seed", [](const PyScene& s) { return s.scene->settings.seed; }, "Sampler seed of the scene file")
+      .def_property_readonly("path", [](const PyScene& s) { return s.path; })
+      .def("__repr__", [](const PyScene& s) {
+        return "<backlight.Scene '" + s.path + "': " + std::to_string(s.scene->params.count()) + " parameters, " +
+               std::to_string(s.scene->cameras.size()) + " camera(s)>";
+      });
+
+  m.def("load", &load, py::arg("path"), py::arg("set") = py::none(), py::kw_only(), py::arg("max_depth") = py::none(),
+        py::arg("rr_depth") = py::none(),
+        "Loads a JSON or glTF scene. set: {name: value} overrides, as the CLI's --set (a number, a list of numbers, "
+        "or an image file name); max_depth and rr_depth as the CLI's --max-depth and --rr-depth.");
+  m.def(
+      "render",
+      [](PyScene& s, std::optional<int> spp, std::optional<uint64_t> seed, int camera,
+         std::optional<std::pair<int, int>> resolution) {
+        return render_py(s, {spp, seed, camera, resolution});
+      },
+      py::arg("scene"), py::kw_only(), py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("camera") = 0,
+      py::arg("resolution") = py::none(),
+      "Renders an image: float32 (height, width, 3). resolution = (width, height) overrides the camera's film for "
+      "this call.");
+  m.def(
+      "backward",
+      [](PyScene& s, const py::handle& d_image, const std::string& method, std::optional<int> spp,
+         std::optional<uint64_t> seed, std::optional<uint64_t> adjoint_seed, int camera,
+         std::optional<std::pair<int, int>> resolution, std::optional<std::vector<std::string>> params) {
+        return backward_py(s, d_image, method, {spp, seed, camera, resolution}, adjoint_seed, params);
+      },
+      py::arg("scene"), py::arg("d_image"), py::kw_only(), py::arg("method") = "prb", py::arg("spp") = py::none(),
+      py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(), py::arg("camera") = 0,
+      py::arg("resolution") = py::none(), py::arg("params") = py::none(),
+      "Gradient of sum(d_image * render(scene)) with respect to the parameters (all, or the names in params): "
+      "{name: float32 array shaped like the parameter}. d_image: float32 (height, width, 3). With adjoint_seed "
+      "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns.");
+  m.def(
+      "grad",
+      [](PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,
+         std::optional<int> spp, std::optional<uint64_t> seed, std::optional<uint64_t> adjoint_seed, int camera,
+         std::optional<std::pair<int, int>> resolution, std::optional<std::vector<std::string>> params) {
+        return grad_py(s, target, loss, method, {spp, seed, camera, resolution}, adjoint_seed, params);
+      },
+      py::arg("scene"), py::arg("target"), py::kw_only(), py::arg("loss") = "l2", py::arg("method") = "prb",
+      py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(),
+      py::arg("camera") = 0, py::arg("resolution") = py::none(), py::arg("params") = py::none(),
+      "Loss of the render against target (l2, l1 or rel_l2) and its gradient: (loss, {name: gradient}, image).");
+}

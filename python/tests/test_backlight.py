@@ -1,0 +1,170 @@
+"""The Python module: parameter views, render and gradients against the CLI and against exact and
+finite-difference derivatives, the GIL, and every kind of bad argument."""
+import os
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import backlight
+
+ROOT = os.environ.get("BACKLIGHT_ROOT", os.path.join(os.path.dirname(__file__), "..", ".."))
+BIN = os.environ.get("BACKLIGHT_BIN", os.path.join(ROOT, "build", "bin"))
+CORNELL = os.path.join(ROOT, "scenes", "cornell", "scene.json")
+RES = (24, 20)  # (width, height): small and not square, so axis mix-ups show
+
+
+def read_pfm(path):
+    with open(path, "rb") as f:
+        assert f.readline().strip() == b"PF"
+        w, h = (int(v) for v in f.readline().split())
+        assert float(f.readline()) < 0  # little endian
+        data = np.frombuffer(f.read(), dtype="<f4").reshape(h, w, 3)
+    return data[::-1]  # rows are stored bottom-up
+
+
+def weights(h, w, seed=3):
+    return np.random.default_rng(seed).uniform(0.2, 1.0, size=(h, w, 3)).astype(np.float32)
+
+
+@pytest.fixture
+def scene():
+    return backlight.load(CORNELL)
+
+
+def test_params_are_writable_views_without_copies(scene):
+    params = scene.params
+    wall = params["wall.albedo"]
+    assert wall.dtype == np.float32 and wall.ndim == 3 and wall.shape[2] == 3
+    assert tuple(wall.shape) == tuple(scene.param_info["wall.albedo"]["shape"])
+    assert params["light.radiance"].shape == (3,)
+    # Two accesses see the same memory: a write through one shows in the other.
+    again = scene.params["wall.albedo"]
+    assert np.shares_memory(wall, again)
+    wall[0, 0] = [0.25, 0.5, 0.75]
+    np.testing.assert_array_equal(scene.params["wall.albedo"][0, 0], [0.25, 0.5, 0.75])
+
+
+def test_render_matches_the_cli_bitwise(scene, tmp_path):
+    image = backlight.render(scene, spp=4, seed=5, resolution=RES)
+    assert image.shape == (RES[1], RES[0], 3) and image.dtype == np.float32
+    out = tmp_path / "cli.pfm"
+    subprocess.run([os.path.join(BIN, "backlight"), "render", CORNELL, "--spp", "4", "--seed", "5", "--resolution",
+                    f"{RES[0]}x{RES[1]}", "-q", "-o", str(out)], check=True)
+    np.testing.assert_array_equal(image, read_pfm(out))
+    # The camera's own film is restored after a call with a resolution.
+    assert scene.cameras[0] == (512, 512)
+
+
+def test_writes_through_views_change_the_render(scene):
+    before = backlight.render(scene, spp=2, seed=1, resolution=RES)
+    scene.params["light.radiance"][:] *= 2
+    after = backlight.render(scene, spp=2, seed=1, resolution=RES)
+    # Every pixel's light comes from the one emitter: the image doubles exactly (a power of two).
+    np.testing.assert_array_equal(after, 2 * before)
+
+
+def test_emitter_gradient_is_exact(scene):
+    # The image is linear in the only emitter's radiance: dF/dL_c = sum(a_c I_c) / L_c for F = sum(a I).
+    a = weights(RES[1], RES[0])
+    image = backlight.render(scene, spp=4, seed=7, resolution=RES)
+    grads = backlight.backward(scene, a, spp=4, seed=7, resolution=RES, params=["light.radiance"])
+    assert set(grads) == {"light.radiance"}
+    radiance = scene.params["light.radiance"]
+    exact = (a.astype(np.float64) * image).sum(axis=(0, 1)) / radiance
+    np.testing.assert_allclose(grads["light.radiance"], exact, rtol=2e-6)
+
+
+def test_texture_gradient_matches_same_seed_central_differences():
+    # Russian roulette off: its continuation probability depends on the albedo, which same-seed
+    # differences would see and the detached estimator (like Mitsuba's) leaves out.
+    scene = backlight.load(CORNELL, max_depth=4, rr_depth=0)
+    a = weights(RES[1], RES[0], seed=11)
+    name = "plastic.albedo"
+    grads = backlight.backward(scene, a, spp=4, seed=2, resolution=RES, params=[name])
+    theta = scene.params[name].copy()
+    v = np.random.default_rng(5).standard_normal(theta.shape).astype(np.float32)
+    eps = 1e-2
+
+    def functional(value):
+        scene.params[name][...] = value
+        return float((a.astype(np.float64) * backlight.render(scene, spp=4, seed=2, resolution=RES)).sum())
+
+    step_plus, step_minus = (theta + eps * v).astype(np.float32), (theta - eps * v).astype(np.float32)
+    fd = (functional(step_plus) - functional(step_minus)) / (2 * eps)
+    predicted = float((grads[name].astype(np.float64) * (step_plus - step_minus)).sum()) / (2 * eps)
+    scene.params[name][...] = theta
+    assert fd != 0
+    assert abs(predicted - fd) <= 1e-2 * abs(fd), (predicted, fd)
+
+
+def test_grad_is_backward_of_the_loss_gradient(scene):
+    target = weights(RES[1], RES[0], seed=4) * 0.3
+    loss, grads, image = backlight.grad(scene, target, loss="l2", spp=4, seed=3, resolution=RES, params=["wall.albedo"])
+    diff = image.astype(np.float64) - target
+    assert loss == pytest.approx(np.mean(diff * diff), rel=1e-6)
+    d_image = (2 * diff / diff.size).astype(np.float32)
+    expected = backlight.backward(scene, d_image, spp=4, seed=3, resolution=RES, params=["wall.albedo"])
+    g, e = grads["wall.albedo"], expected["wall.albedo"]
+    assert np.linalg.norm(e) > 0
+    assert np.linalg.norm(g - e) <= 1e-5 * np.linalg.norm(e)
+
+
+def test_renders_release_the_gil(scene):
+    ticks = []
+    done = threading.Event()
+
+    def render():
+        backlight.render(scene, spp=64, seed=1, resolution=(96, 96))
+        done.set()
+
+    thread = threading.Thread(target=render)
+    start = time.perf_counter()
+    thread.start()
+    while not done.is_set():
+        ticks.append(time.perf_counter())
+        time.sleep(0.005)
+    thread.join()
+    elapsed = time.perf_counter() - start
+    # Holding the GIL for the whole render would leave the loop one tick at most.
+    assert len(ticks) >= 5, (len(ticks), elapsed)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda s: backlight.load("/nonexistent/scene.json"), "/nonexistent/scene.json"),
+    (lambda s: backlight.load(CORNELL, set={"nope.albedo": 1}), "unknown parameter 'nope.albedo'"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": [1, 2]}), "light.radiance"),
+    (lambda s: backlight.load(CORNELL, max_depth=0), "max_depth"),
+    (lambda s: backlight.render(s, spp=0), "spp must be"),
+    (lambda s: backlight.render(s, camera=99), "camera 99"),
+    (lambda s: backlight.render(s, resolution=(0, 10)), "resolution"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, method="magic"),
+     "unknown method 'magic'"),
+    (lambda s: backlight.backward(s, np.zeros((24, 20, 3), np.float32), resolution=RES), "expected shape (20, 24, 3)"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3)), resolution=RES), "expected dtype float32"),
+    (lambda s: backlight.backward(s, np.zeros((20, 48, 3), np.float32)[:, ::2], resolution=RES), "C-contiguous"),
+    (lambda s: backlight.backward(s, np.full((20, 24, 3), np.nan, np.float32), resolution=RES), "NaN"),
+    (lambda s: backlight.backward(s, [[0.0]], resolution=RES), "expected a NumPy array"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, params=["nope"]),
+     "unknown parameter 'nope'"),
+    (lambda s: backlight.grad(s, np.zeros((20, 24, 3), np.float32), resolution=RES, loss="l7"), "l7"),
+])
+def test_bad_arguments_raise_one_line_errors(scene, call, message):
+    with pytest.raises(backlight.Error) as info:
+        call(scene)
+    text = str(info.value)
+    assert message in text and "\n" not in text
+    assert isinstance(info.value, ValueError)
+
+
+def test_bad_values_written_through_views_are_refused_by_name(scene):
+    scene.params["wall.albedo"][3, 4, 1] = np.nan
+    with pytest.raises(backlight.Error, match="wall.albedo"):
+        backlight.render(scene, spp=1, resolution=RES)
+    scene.params["wall.albedo"][3, 4, 1] = -1.0
+    with pytest.raises(backlight.Error, match="outside its valid range"):
+        backlight.render(scene, spp=1, resolution=RES)
+    scene.params["wall.albedo"][3, 4, 1] = 0.5
+    backlight.render(scene, spp=1, resolution=RES)
