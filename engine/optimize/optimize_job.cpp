@@ -2,7 +2,11 @@
 // is documented in the README ("Optimization config"); errors name the config file and the JSON
 // pointer. Every output is written atomically; checkpoints are whole directories swapped in by
 // rename, so a killed run resumes from the last complete one and reaches the same parameters.
+#include <fcntl.h>
+#include <spawn.h>
+#include <sys/wait.h>
 #include <tbb/global_control.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <csignal>
@@ -74,6 +78,8 @@ struct Config {
   int checkpoint_every = 10, snapshot_every = 25;
   int width = 0, height = 0;  // render resolution override (0 = the cameras')
   int rmse_width = 0, rmse_height = 0;
+  int validation_every = 10;  // completed iterations between validation losses; 0 = none
+  int validation_spp = 0;     // samples per pixel of each of its two renders (0 = spp)
 };
 
 std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
@@ -124,6 +130,13 @@ Config parse_config(const std::string& path) {
   };
   read_size("resolution", c.width, c.height);
   read_size("rmse_resolution", c.rmse_width, c.rmse_height);
+  c.validation_spp = c.spp;
+  if (n.has("validation")) {
+    Node v = n.child("validation");
+    c.validation_every = int(v.integer("every", 10, 0, 10000000));
+    c.validation_spp = int(v.integer("spp", c.spp, 1, long(limits::kSpp)));
+    v.finish();
+  }
 
   Node views = n.child("views");
   if (views.has("ring")) {
@@ -371,10 +384,43 @@ std::vector<T> read_floats(const std::string& path, size_t count) {
   return v;
 }
 
+// Runs `python3 SCRIPT args...` (Debian's /usr/bin/python3 when present) with its output
+// discarded; returns its exit status, or -1 when it could not be started or was killed.
+int run_python(const std::vector<std::string>& args) {
+  const std::string python = fs::exists("/usr/bin/python3") ? "/usr/bin/python3" : "python3";
+  std::vector<std::string> all{python};
+  all.insert(all.end(), args.begin(), args.end());
+  std::vector<char*> argv;
+  for (auto& a : all) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
+  posix_spawn_file_actions_addopen(&actions, 1, "/dev/null", O_WRONLY, 0);
+  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
+  pid_t pid = 0;
+  const int spawned = ::posix_spawnp(&pid, python.c_str(), &actions, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&actions);
+  if (spawned != 0) return -1;
+  int status = 0;
+  while (::waitpid(pid, &status, 0) < 0)
+    if (errno != EINTR) return -1;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+// tools/plot_optimize of this source tree (the plots of an optimize run, drawn with matplotlib).
+std::string plot_script() { return std::string(BL_SOURCE_DIR) + "/tools/plot_optimize"; }
+
 struct LogRow {
   int iteration;
   double loss, seconds;
   double rmse = -1;  // first optimized parameter vs ground truth, when known
+};
+
+// A validation loss after `iteration` completed iterations.
+struct ValidationRow {
+  int iteration;
+  double loss, seconds;
 };
 
 class Job {
@@ -398,6 +444,10 @@ class Job {
     // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
     remove_stale_temporaries(c_.output);
     prepare_targets();
+    matplotlib_ = probe_matplotlib();
+    if (!matplotlib_ && !quiet_)
+      std::fprintf(stderr, "optimize: python3-matplotlib not found: simple plots; with it, run %s %s\n",
+                   plot_script().c_str(), c_.output.c_str());
     int start = 0;
     if (resume) {
       start = load_checkpoint();
@@ -415,6 +465,8 @@ class Job {
   std::vector<int> cameras_;
   std::vector<Image> targets_;
   std::vector<LogRow> log_;
+  std::vector<ValidationRow> validation_;
+  bool matplotlib_ = false;
   double elapsed_before_ = 0;  // seconds spent before a resume
   double initial_loss_ = -1;
 
@@ -543,6 +595,7 @@ class Job {
     };
     const int view_count = int(cameras_.size());
     const int per_iteration = c_.views_per_iteration > 0 ? std::min(c_.views_per_iteration, view_count) : view_count;
+    validate(start, seconds);  // the starting point (already recorded when resuming)
     for (int it = start; it < c_.iterations; ++it) {
       for (auto& p : c_.params) {
         const Stage* s = stage_at(p, it);
@@ -605,19 +658,78 @@ class Job {
       if (initial_loss_ < 0 && log_.empty()) initial_loss_ = loss;
       log_.push_back({it, loss, seconds(), current_rmse()});
       write_log();
-      char note[64];
+      validate(it + 1, seconds);
+      char note[96];
+      const std::string val =
+          validation_.empty() ? "" : " validation " + std::to_string(validation_.back().loss).substr(0, 10);
       if (log_.back().rmse >= 0)
-        std::snprintf(note, sizeof note, "loss %.4g rmse %.4f", loss, log_.back().rmse);
+        std::snprintf(note, sizeof note, "loss %.4g rmse %.4f%s", loss, log_.back().rmse, val.c_str());
       else
-        std::snprintf(note, sizeof note, "loss %.4g", loss);
+        std::snprintf(note, sizeof note, "loss %.4g%s", loss, val.c_str());
       progress.set_note(note);
       progress.advance(1);
-      if ((it + 1) % c_.snapshot_every == 0 || it + 1 == c_.iterations) snapshot(it + 1, first_view);
+      if ((it + 1) % c_.snapshot_every == 0 || it + 1 == c_.iterations) {
+        snapshot(it + 1, first_view);
+        plot();
+      }
       if ((it + 1) % c_.checkpoint_every == 0 || it + 1 == c_.iterations) write_checkpoint(it + 1, seconds());
     }
     progress.finish();
     finish(seconds());
     return 0;
+  }
+
+  // The validation loss: every view rendered twice with fixed seeds of its own (the same at every
+  // validation) and compared with its target. For l2 and rel_l2 it is the mean of
+  // (I_a − T)(I_b − T) [/ (T² + 0.01)]: the two renders are independent, so this estimates the loss
+  // of the *expected* render against the target without the renders' own Monte Carlo variance,
+  // which dominates a few-spp loss (it may come out slightly negative when the loss is near zero).
+  // l1 has no such form: the mean of both renders' losses.
+  double validation_loss() const {
+    double total = 0;
+    for (size_t v = 0; v < cameras_.size(); ++v) {
+      auto seed = [&](uint64_t k) { return mix64(mix64(c_.seed ^ 0x76616c6964617465ull) + uint64_t(v) * 2 + k); };
+      const Image a = render(*scene_, {cameras_[v], c_.validation_spp, seed(0), false});
+      const Image b = render(*scene_, {cameras_[v], c_.validation_spp, seed(1), false});
+      const Image& t = targets_[v];
+      double sum = 0;
+      for (size_t i = 0; i < t.data.size(); ++i) {
+        const double da = double(a.data[i]) - t.data[i], db = double(b.data[i]) - t.data[i];
+        switch (c_.loss) {
+          case LossType::L2:
+            sum += da * db;
+            break;
+          case LossType::RelativeL2:
+            sum += da * db / (double(t.data[i]) * t.data[i] + 0.01);
+            break;
+          case LossType::L1:
+            sum += 0.5 * (std::abs(da) + std::abs(db));
+            break;
+        }
+      }
+      total += sum / double(t.data.size());
+    }
+    return total / double(cameras_.size());
+  }
+
+  // Records the validation loss after `done` completed iterations when it is due.
+  template <class Seconds>
+  void validate(int done, const Seconds& seconds) {
+    if (c_.validation_every <= 0) return;
+    if (done % c_.validation_every != 0 && done != c_.iterations) return;
+    if (!validation_.empty() && validation_.back().iteration >= done) return;
+    validation_.push_back({done, validation_loss(), seconds()});
+    write_validation();
+  }
+
+  void write_validation() const {
+    std::string csv = "iteration,validation_loss,time_s\n";
+    char line[96];
+    for (const auto& r : validation_) {
+      std::snprintf(line, sizeof line, "%d,%.9g,%.3f\n", r.iteration, r.loss, r.seconds);
+      csv += line;
+    }
+    write_text_atomic(out("validation.csv"), csv);
   }
 
   // RMSE of the first optimized parameter against its ground truth (at rmse_resolution), or −1.
@@ -646,8 +758,23 @@ class Job {
       error.y.push_back(r.rmse);
     }
     write_text_atomic(out("loss.csv"), csv);
+    if (matplotlib_) return;  // plot() draws them at snapshots and at the end
     write_line_plot(out("loss.png"), loss, true, "loss");
     if (has_rmse) write_line_plot(out("param_rmse.png"), error, true, "parameter RMSE");
+  }
+
+  // Whether tools/plot_optimize can run here (python3 with matplotlib); decided once per run.
+  bool probe_matplotlib() const { return fs::exists(plot_script()) && run_python({"-c", "import matplotlib"}) == 0; }
+
+  // loss.png and param_rmse.png drawn by matplotlib from the CSV files. Without it the built-in
+  // plotter draws them at every iteration, and the command is printed once.
+  void plot() {
+    if (!matplotlib_) return;
+    if (run_python({plot_script(), c_.output}) == 0) return;
+    matplotlib_ = false;
+    std::fprintf(stderr, "optimize: plotting with matplotlib failed; drawing simple plots instead (run %s %s)\n",
+                 plot_script().c_str(), c_.output.c_str());
+    write_log();
   }
 
   void snapshot(int iteration, const Image& view) {
@@ -679,6 +806,9 @@ class Job {
     json log = json::array();
     for (const auto& r : log_) log.push_back({r.iteration, r.loss, r.seconds, r.rmse});
     state["log"] = log;
+    json validation = json::array();
+    for (const auto& r : validation_) validation.push_back({r.iteration, r.loss, r.seconds});
+    state["validation"] = validation;
     for (const auto& p : c_.params) {
       const Param& param = scene_->params[p.handle];
       const bool half = p.adam.settings().bf16_moments;
@@ -762,6 +892,9 @@ class Job {
       }
       for (const auto& r : state.at("log"))
         log_.push_back({r[0].get<int>(), r[1].get<double>(), r[2].get<double>(), r[3].get<double>()});
+      if (state.contains("validation"))  // checkpoints from before validation losses have none
+        for (const auto& r : state.at("validation"))
+          validation_.push_back({r.at(0).get<int>(), r.at(1).get<double>(), r.at(2).get<double>()});
       elapsed_before_ = state.at("seconds").get<double>();
       initial_loss_ = state.at("initial_loss").get<double>();
       scene_->prepare_sampling();
@@ -782,6 +915,11 @@ class Job {
     summary["views_per_iteration"] = c_.views_per_iteration;
     summary["spp"] = c_.spp;
     summary["adjoint_spp"] = c_.adjoint_spp;
+    if (!validation_.empty()) {
+      summary["validation_loss_initial"] = validation_.front().loss;
+      summary["validation_loss_final"] = validation_.back().loss;
+      summary["validation"] = {{"every", c_.validation_every}, {"spp", c_.validation_spp}};
+    }
     json final_params = json::object();
     for (const auto& p : c_.params) {
       const Param& param = scene_->params[p.handle];
@@ -838,6 +976,9 @@ class Job {
     std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations,
                  seconds, summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(),
                  c_.output.c_str());
+    if (!validation_.empty())
+      std::fprintf(stderr, "optimize: validation loss (%d spp, fixed seeds) %.4g -> %.4g\n", c_.validation_spp,
+                   validation_.front().loss, validation_.back().loss);
     for (auto it = summary["parameters"].begin(); summary.contains("parameters") && it != summary["parameters"].end();
          ++it) {
       std::string at;

@@ -111,10 +111,48 @@ TEST_CASE("a tiny optimization cuts the loss at least 10x", "[optimizer]") {
   CHECK(first / last >= 10.0);
   CHECK(summary["parameters"]["floor.albedo"]["rmse_final"].get<double>() <
         summary["parameters"]["floor.albedo"]["rmse_initial"].get<double>() / 3);
-  for (const char* f :
-       {"loss.csv", "loss.png", "param_rmse.png", "compare.png", "summary.json", "final/floor.albedo.exr",
-        "final/floor.albedo.png", "snapshots/floor.albedo_00050.png", "checkpoint/state.json"})
+  // The validation loss (every 10 iterations by default, fixed seeds) falls cleanly.
+  const double v0 = summary["validation_loss_initial"], v1 = summary["validation_loss_final"];
+  INFO("validation loss " << v0 << " -> " << v1);
+  CHECK(v0 / v1 >= 10.0);
+  std::ifstream validation(dir + "/out/validation.csv");
+  std::string line;
+  int rows = 0;
+  while (std::getline(validation, line)) ++rows;
+  CHECK(rows == 1 + 7);  // header, iterations 0, 10, …, 60
+  for (const char* f : {"loss.csv", "validation.csv", "loss.png", "param_rmse.png", "compare.png", "summary.json",
+                        "final/floor.albedo.exr", "final/floor.albedo.png", "snapshots/floor.albedo_00050.png",
+                        "checkpoint/state.json"})
     CHECK(fs::exists(dir + "/out/" + f));
+}
+
+TEST_CASE("the validation loss leaves out the renders' own Monte Carlo noise", "[optimizer]") {
+  // Started at the ground truth and barely moved: the loss of each iteration is then mostly the
+  // variance of its 8-spp render, while the validation loss, (I_a − T)(I_b − T) over two
+  // independent renders, estimates only the expected render's distance to the 64-spp target.
+  const std::string dir = test::temp_dir("validation");
+  const std::string job = write_tiny_job(dir, 4, R"(, "validation": {"every": 2, "spp": 8})");
+  std::string text;
+  {
+    std::ifstream f(job);
+    text.assign(std::istreambuf_iterator<char>(f), {});
+  }
+  const std::string from = R"("lr": 0.05, "bounds": [0, 1]})",
+                    to = R"("lr": 1e-9, "bounds": [0, 1], "init": "truth.exr"})";
+  REQUIRE(text.find(from) != std::string::npos);
+  text.replace(text.find(from), from.size(), to);
+  std::ofstream(job) << text;
+  REQUIRE(run_optimize(job, "", 0, true) == 0);
+  auto summary = read_json(dir + "/out/summary.json");
+  const double raw = summary["initial_loss"], validation = summary["validation_loss_initial"];
+  INFO("loss of the first iteration " << raw << ", validation loss " << validation);
+  CHECK(std::abs(validation) < 0.3 * raw);
+  CHECK(summary["validation"]["every"] == 2);
+  std::ifstream csv(dir + "/out/validation.csv");
+  std::string line;
+  int rows = 0;
+  while (std::getline(csv, line)) ++rows;
+  CHECK(rows == 1 + 3);  // iterations 0, 2, 4
 }
 
 TEST_CASE("resuming from a checkpoint reaches the same parameters as an uninterrupted run", "[optimizer]") {
