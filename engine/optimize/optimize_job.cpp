@@ -408,6 +408,58 @@ int run_python(const std::vector<std::string>& args) {
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
 }
 
+std::string base64(const std::string& bytes) {
+  static const char* const table = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  out.reserve((bytes.size() + 2) / 3 * 4);
+  size_t i = 0;
+  for (; i + 2 < bytes.size(); i += 3) {
+    const uint32_t v = uint32_t(uint8_t(bytes[i])) << 16 | uint32_t(uint8_t(bytes[i + 1])) << 8 | uint8_t(bytes[i + 2]);
+    out += {table[v >> 18], table[v >> 12 & 63], table[v >> 6 & 63], table[v & 63]};
+  }
+  if (i + 1 == bytes.size()) {
+    const uint32_t v = uint32_t(uint8_t(bytes[i])) << 16;
+    out += {table[v >> 18], table[v >> 12 & 63], '=', '='};
+  } else if (i + 2 == bytes.size()) {
+    const uint32_t v = uint32_t(uint8_t(bytes[i])) << 16 | uint32_t(uint8_t(bytes[i + 1])) << 8;
+    out += {table[v >> 18], table[v >> 12 & 63], table[v >> 6 & 63], '='};
+  }
+  return out;
+}
+
+std::string html_escape(const std::string& text) {
+  std::string out;
+  for (char ch : text) {
+    switch (ch) {
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      default:
+        out += ch;
+    }
+  }
+  return out;
+}
+
+// A PNG file as an inline <img> (the page needs no other file), or nothing when it is absent.
+std::string inline_png(const std::string& path, const std::string& caption) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) return "";
+  const std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  if (bytes.size() < 8 || bytes.compare(0, 8, "\x89PNG\r\n\x1a\n") != 0) return "";
+  return "<figure><img alt=\"" + html_escape(caption) + "\" src=\"data:image/png;base64," + base64(bytes) +
+         "\"><figcaption>" + html_escape(caption) + "</figcaption></figure>\n";
+}
+
 // tools/plot_optimize of this source tree (the plots of an optimize run, drawn with matplotlib).
 std::string plot_script() { return std::string(BL_SOURCE_DIR) + "/tools/plot_optimize"; }
 
@@ -671,6 +723,7 @@ class Job {
       if ((it + 1) % c_.snapshot_every == 0 || it + 1 == c_.iterations) {
         snapshot(it + 1, first_view);
         plot();
+        write_report(it + 1, seconds(), false);
       }
       if ((it + 1) % c_.checkpoint_every == 0 || it + 1 == c_.iterations) write_checkpoint(it + 1, seconds());
     }
@@ -730,6 +783,58 @@ class Job {
       csv += line;
     }
     write_text_atomic(out("validation.csv"), csv);
+  }
+
+  // report.html: one self-contained page (images inlined) with the run's state, its curves, the
+  // comparison of target, start and result, and the latest parameter snapshots. While the run
+  // goes on it reloads itself every 15 s; it is rewritten at every snapshot and at the end.
+  void write_report(int done, double seconds, bool finished) const {
+    auto fmt = [](double v) {
+      char b[32];
+      std::snprintf(b, sizeof b, "%.4g", v);
+      return std::string(b);
+    };
+    std::string h = "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\n";
+    if (!finished) h += "<meta http-equiv=\"refresh\" content=\"15\">\n";
+    h += "<title>backlight optimize: " + html_escape(fs::path(c_.file).filename().string()) + "</title>\n";
+    h += "<style>body{font-family:sans-serif;margin:2em;max-width:1100px}table{border-collapse:collapse}"
+         "td,th{border:1px solid #bbb;padding:4px 10px;text-align:left}figure{display:inline-block;margin:8px;"
+         "vertical-align:top}img{max-width:520px;image-rendering:pixelated;border:1px solid #ddd}"
+         "figcaption{font-size:90%;color:#444}</style></head><body>\n";
+    h += "<h1>backlight optimize</h1>\n<p>" + html_escape(c_.file) + " &rarr; " + html_escape(c_.output) + "</p>\n";
+    h += "<p><b>" + std::string(finished ? "Finished" : "Running") + "</b>: " + std::to_string(done) + " of " +
+         std::to_string(c_.iterations) + " iterations, " + fmt(seconds) + " s" +
+         (finished ? "" : " (this page reloads every 15 s)") + ".</p>\n";
+    h += "<table>\n<tr><th>quantity</th><th>start</th><th>now</th></tr>\n";
+    if (!log_.empty())
+      h += "<tr><td>loss (" + std::string(loss_name(c_.loss)) + ", " + std::to_string(c_.spp) +
+           " spp, each iteration)</td><td>" + fmt(log_.front().loss) + "</td><td>" + fmt(log_.back().loss) +
+           "</td></tr>\n";
+    if (!validation_.empty())
+      h += "<tr><td>validation loss (" + std::to_string(c_.validation_spp) + " spp, fixed seeds)</td><td>" +
+           fmt(validation_.front().loss) + "</td><td>" + fmt(validation_.back().loss) + "</td></tr>\n";
+    if (!log_.empty() && log_.front().rmse >= 0)
+      h += "<tr><td>RMSE of " + html_escape(c_.params.front().name) + " against the truth</td><td>" +
+           fmt(log_.front().rmse) + "</td><td>" + fmt(log_.back().rmse) + "</td></tr>\n";
+    h += "<tr><td>views</td><td colspan=\"2\">" + std::to_string(cameras_.size()) + " (" +
+         std::to_string(c_.views_per_iteration > 0 ? c_.views_per_iteration : int(cameras_.size())) +
+         " per iteration), " + std::to_string(c_.spp) + " + " + std::to_string(c_.adjoint_spp) + " spp</td></tr>\n";
+    h += "</table>\n<h2>Curves</h2>\n";
+    h += inline_png(out("loss.png"), "loss of each iteration and validation loss");
+    h += inline_png(out("param_rmse.png"), "parameter RMSE against the ground truth");
+    h += "<h2>Images</h2>\n";
+    h += inline_png(out("compare.png"), "target | initial | final (first view)");
+    char tag[32];
+    std::snprintf(tag, sizeof tag, "%05d", done);
+    if (!finished) h += inline_png(out("snapshots/view_" + std::string(tag) + ".png"), "first view of this iteration");
+    h += "<h2>Parameters</h2>\n";
+    for (const auto& p : c_.params) {
+      const std::string file =
+          finished ? out("final/" + p.name + ".png") : out("snapshots/" + p.name + "_" + tag + ".png");
+      h += inline_png(file, p.name + (finished ? " (final)" : " (iteration " + std::to_string(done) + ")"));
+    }
+    h += "</body></html>\n";
+    write_text_atomic(out("report.html"), h);
   }
 
   // RMSE of the first optimized parameter against its ground truth (at rmse_resolution), or −1.
@@ -973,6 +1078,7 @@ class Job {
           for (int ch = 0; ch < 3; ++ch) compare.at(k * target.width + x, y, ch) = panels[k]->at(x, y, ch);
     write_image(out("compare.png"), compare);
     write_text_atomic(out("summary.json"), summary.dump(1) + "\n");
+    write_report(c_.iterations, seconds, true);
     std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations,
                  seconds, summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(),
                  c_.output.c_str());

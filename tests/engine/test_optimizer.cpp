@@ -120,9 +120,26 @@ TEST_CASE("a tiny optimization cuts the loss at least 10x", "[optimizer]") {
   int rows = 0;
   while (std::getline(validation, line)) ++rows;
   CHECK(rows == 1 + 7);  // header, iterations 0, 10, …, 60
-  for (const char* f : {"loss.csv", "validation.csv", "loss.png", "param_rmse.png", "compare.png", "summary.json",
-                        "final/floor.albedo.exr", "final/floor.albedo.png", "snapshots/floor.albedo_00050.png",
-                        "checkpoint/state.json"})
+  // report.html: one page with everything inlined (no other file, no network), finished (no reload).
+  std::string report;
+  {
+    std::ifstream f(dir + "/out/report.html");
+    report.assign(std::istreambuf_iterator<char>(f), {});
+  }
+  CHECK(report.rfind("<!DOCTYPE html>", 0) == 0);
+  CHECK(report.find("</html>") != std::string::npos);
+  CHECK(report.find("Finished") != std::string::npos);
+  CHECK(report.find("http-equiv=\"refresh\"") == std::string::npos);
+  CHECK(report.find("validation loss") != std::string::npos);
+  size_t images = 0;
+  for (size_t at = report.find("src=\""); at != std::string::npos; at = report.find("src=\"", at + 1)) {
+    CHECK(report.compare(at, 38, "src=\"data:image/png;base64,iVBORw0KGgo") == 0);  // an inline PNG
+    ++images;
+  }
+  CHECK(images == 4);  // loss, parameter RMSE, comparison, final texture
+  for (const char* f : {"loss.csv", "validation.csv", "loss.png", "report.html", "param_rmse.png", "compare.png",
+                        "summary.json", "final/floor.albedo.exr", "final/floor.albedo.png",
+                        "snapshots/floor.albedo_00050.png", "checkpoint/state.json"})
     CHECK(fs::exists(dir + "/out/" + f));
 }
 
