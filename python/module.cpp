@@ -311,7 +311,7 @@ PYBIND11_MODULE(_backlight, m) {
 
   m.def("load", &load, py::arg("path"), py::arg("set") = py::none(), py::kw_only(), py::arg("max_depth") = py::none(),
         py::arg("rr_depth") = py::none(),
-        "Loads a JSON or glTF scene. set: {name: value} overrides, as the CLI's --set (a number, a list of numbers, "
+        "Loads a JSON, glTF or Mitsuba 3 XML scene. set: {name: value} overrides, as the CLI's --set (a number, a list of numbers, "
         "or an image file name); max_depth and rr_depth as the CLI's --max-depth and --rr-depth.");
   m.def(
       "render",

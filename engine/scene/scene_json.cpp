@@ -12,6 +12,7 @@
 #include "engine/core/limits.h"
 #include "engine/io/image_io.h"
 #include "engine/io/json_node.h"
+#include "engine/scene/mesh_io.h"
 #include "engine/scene/openvdb_io.h"
 #include "engine/scene/scene_load.h"
 #include "engine/scene/volume_io.h"
@@ -384,9 +385,17 @@ struct Loader {
     } else if (type == "gltf") {
       parts = load_gltf_meshes(resolve(n.string("file")), Transform());
       if (parts.empty()) n.fail_at("file", "the glTF file has no triangle meshes");
+    } else if (type == "obj") {
+      parts.push_back(read_obj(resolve(n.string("file")), n.boolean("flip_tex_coords", true)));
+    } else if (type == "ply") {
+      parts.push_back(read_ply(resolve(n.string("file"))));
+    } else if (type == "sphere") {
+      parts.push_back(make_sphere(int(n.integer("segments", 64, 4, 4096))));
     } else {
-      n.fail_at("type", "unknown shape type '" + type + "' (expected rectangle, cube, mesh or gltf)");
+      n.fail_at("type", "unknown shape type '" + type + "' (expected rectangle, cube, sphere, mesh, obj, ply or gltf)");
     }
+    if (n.boolean("face_normals", false))
+      for (auto& part : parts) part.normals.clear();
     // One emitter per shape even when a glTF file holds several primitives: merge them.
     Mesh merged;
     merged.name = name;
@@ -472,7 +481,10 @@ struct Loader {
 
 std::unique_ptr<Scene> load_json_scene(const std::string& path) {
   const std::string text = read_json_file(path);
-  json root = parse_json_text(text, path);
+  return build_json_scene(parse_json_text(text, path), path);
+}
+
+std::unique_ptr<Scene> build_json_scene(const json& root, const std::string& path) {
   auto scene = std::make_unique<Scene>();
   scene->source = path;
   Loader loader{path, fs::path(path).parent_path(), *scene};
@@ -486,6 +498,7 @@ std::unique_ptr<Scene> load_scene(const std::string& path) {
     std::string ext = fs::path(path).extension().string();
     for (auto& ch : ext) ch = char(std::tolower(ch));
     if (ext == ".gltf" || ext == ".glb") return load_gltf_scene(path);
+    if (ext == ".xml") return load_xml_scene(path);
     return load_json_scene(path);
   });
 }

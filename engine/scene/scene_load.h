@@ -3,14 +3,21 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 #include "engine/scene/scene.h"
 
 namespace bl {
 
-// Loads a backlight JSON scene, or a .gltf/.glb file rendered directly. Returns a prepared scene.
+// Loads a backlight JSON scene, a .gltf/.glb file rendered directly, or a Mitsuba 3 .xml scene.
+// Returns a prepared scene.
 std::unique_ptr<Scene> load_scene(const std::string& path);
 std::unique_ptr<Scene> load_json_scene(const std::string& path);
 std::unique_ptr<Scene> load_gltf_scene(const std::string& path);
+std::unique_ptr<Scene> load_xml_scene(const std::string& path);
+// A scene from a parsed JSON document; relative file names resolve against `path`'s folder and
+// errors name `path` (the XML loader builds its scene this way).
+std::unique_ptr<Scene> build_json_scene(const nlohmann::json& root, const std::string& path);
 
 // Triangle meshes of every primitive of a glTF file's default scene, node transforms applied,
 // then `to_world`. Used by the `gltf` shape type.

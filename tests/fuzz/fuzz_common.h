@@ -46,6 +46,8 @@ inline void make_assets() {
   for (const char* f : {"scene.gltf", "scene.bin", "checker.png"})
     install_file(src / "scenes/gltf" / f, kAssets + "/" + f);
   install_file(src / "tests/fuzz/corpus/fuzz_gltf/tiny.glb", kAssets + "/tiny.glb");
+  install_file(src / "tests/fuzz/corpus/fuzz_mesh/quad.obj", kAssets + "/quad.obj");
+  install_file(src / "tests/fuzz/corpus/fuzz_mesh/quad_binary.ply", kAssets + "/quad.ply");
 }
 
 // This process's scratch folder; the first call creates it (and the assets) and removes the

@@ -45,7 +45,7 @@ fuzz_opts=(-max_len="$max_len" -dict="$here/$name.dict" -max_total_time="$second
 case "$name" in
   fuzz_image) rate=600 ;;
   fuzz_vdb) rate=7 ;;
-  fuzz_gltf | fuzz_scene_json) rate=4000 ;;
+  fuzz_gltf | fuzz_scene_json | fuzz_xml) rate=4000 ;;
   fuzz_optimizer_config) rate=6000 ;;
   *) rate=20000 ;;
 esac

@@ -141,3 +141,14 @@ shared = {"asset": {"version": "2.0"},
                                      for m in range(materials)]}],
           "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}], "scene": 0}
 write("gltf_texture_in_400_materials.gltf", json.dumps(shared, separators=(",", ":")))
+
+# Mitsuba XML: 20 000 nested elements (the XML walk recurses; the limit is 64), and the "billion
+# laughs" entity expansion (pugixml does not expand DTD entities: the value stays '&lol9;').
+write("scene_xml_deep.xml", '<scene version="3.0.0">' + '<shape type="obj">' * 20000 + "</shape>" * 20000 +
+      "</scene>\n")
+laughs = '<?xml version="1.0"?>\n<!DOCTYPE scene [\n<!ENTITY lol "lol">\n'
+for i in range(1, 10):
+    laughs += f'<!ENTITY lol{i} "' + ("&lol;" if i == 1 else f"&lol{i - 1};") * 10 + '">\n'
+laughs += (']>\n<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="&lol9;"/></sensor>'
+           '<shape type="rectangle"/></scene>\n')
+write("scene_xml_billion_laughs.xml", laughs)

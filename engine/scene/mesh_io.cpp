@@ -1,0 +1,432 @@
+#include "engine/scene/mesh_io.h"
+
+#include <tiny_obj_loader.h>
+
+#include <bit>
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <unordered_map>
+
+#include "engine/core/errors.h"
+#include "engine/core/limits.h"
+
+namespace bl {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+// The whole file, within limits::kFileBytes (a FIFO or /dev/zero is refused by require_input_file).
+std::string read_whole(const std::string& path) {
+  require_input_file(path);
+  limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw file_error(path, "cannot open");
+  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+}
+
+void check_finite(const std::string& path, const char* what, float v) {
+  if (!std::isfinite(v)) throw file_error(path, std::string(what) + " is NaN or infinite");
+}
+
+}  // namespace
+
+Mesh read_obj(const std::string& path, bool flip_tex_coords) {
+  const std::string text = read_whole(path);
+  tinyobj::ObjReaderConfig config;
+  config.triangulate = false;  // fans below: tinyobjloader's polygon triangulation trusts its input
+  config.vertex_color = false;
+  tinyobj::ObjReader reader;
+  // Materials are not read (an .mtl file next to it is ignored): backlight's come from the scene.
+  if (!reader.ParseFromString(text, "", config)) {
+    std::string msg = reader.Error();
+    while (!msg.empty() && (msg.back() == '\n' || msg.back() == '\r')) msg.pop_back();
+    throw file_error(path, "malformed OBJ (" + msg + ")");
+  }
+  const tinyobj::attrib_t& a = reader.GetAttrib();
+  const size_t nv = a.vertices.size() / 3, nn = a.normals.size() / 3, nt = a.texcoords.size() / 2;
+  // One pass to decide whether every corner has a normal and a uv (else the mesh gets none).
+  bool normals = true, uvs = true;
+  size_t corners = 0;
+  for (const auto& shape : reader.GetShapes())
+    for (const auto& idx : shape.mesh.indices) {
+      if (idx.vertex_index < 0 || size_t(idx.vertex_index) >= nv)
+        throw file_error(path,
+                         "face refers to vertex " + std::to_string(idx.vertex_index + 1) + " of " + std::to_string(nv));
+      if (idx.normal_index >= 0 && size_t(idx.normal_index) >= nn)
+        throw file_error(path,
+                         "face refers to normal " + std::to_string(idx.normal_index + 1) + " of " + std::to_string(nn));
+      if (idx.texcoord_index >= 0 && size_t(idx.texcoord_index) >= nt)
+        throw file_error(path, "face refers to texture coordinate " + std::to_string(idx.texcoord_index + 1) + " of " +
+                                   std::to_string(nt));
+      normals = normals && idx.normal_index >= 0;
+      uvs = uvs && idx.texcoord_index >= 0;
+      ++corners;
+    }
+  limits::require_at_most(path, "corner count", corners, limits::kMeshElements);
+  Mesh m;
+  struct Key {
+    int v, n, t;
+    bool operator==(const Key& o) const { return v == o.v && n == o.n && t == o.t; }
+  };
+  struct KeyHash {
+    size_t operator()(const Key& k) const {
+      return std::hash<uint64_t>()((uint64_t(uint32_t(k.v)) << 32) ^ (uint64_t(uint32_t(k.n)) << 16) ^
+                                   uint64_t(uint32_t(k.t)));
+    }
+  };
+  std::unordered_map<Key, uint32_t, KeyHash> index_of;
+  auto vertex = [&](const tinyobj::index_t& idx) {
+    const Key key{idx.vertex_index, normals ? idx.normal_index : -1, uvs ? idx.texcoord_index : -1};
+    auto [it, fresh] = index_of.try_emplace(key, uint32_t(m.positions.size()));
+    if (fresh) {
+      const size_t v = size_t(key.v);
+      const Vec3f p{a.vertices[3 * v], a.vertices[3 * v + 1], a.vertices[3 * v + 2]};
+      check_finite(path, "a vertex position", p.x + p.y + p.z);
+      m.positions.push_back(p);
+      if (normals) {
+        const size_t n = size_t(key.n);
+        m.normals.push_back({a.normals[3 * n], a.normals[3 * n + 1], a.normals[3 * n + 2]});
+        check_finite(path, "a normal", m.normals.back().x + m.normals.back().y + m.normals.back().z);
+      }
+      if (uvs) {
+        const size_t t = size_t(key.t);
+        Vec2f uv{a.texcoords[2 * t], a.texcoords[2 * t + 1]};
+        if (flip_tex_coords) uv.y = 1.f - uv.y;
+        check_finite(path, "a texture coordinate", uv.x + uv.y);
+        m.uvs.push_back(uv);
+      }
+    }
+    return it->second;
+  };
+  for (const auto& shape : reader.GetShapes()) {
+    size_t at = 0;
+    for (const unsigned char count : shape.mesh.num_face_vertices) {
+      if (at + count > shape.mesh.indices.size()) throw file_error(path, "malformed OBJ (face list)");
+      if (count >= 3) {
+        const uint32_t first = vertex(shape.mesh.indices[at]);
+        for (size_t k = 1; k + 1 < count; ++k) {
+          const uint32_t b = vertex(shape.mesh.indices[at + k]), c = vertex(shape.mesh.indices[at + k + 1]);
+          m.indices.insert(m.indices.end(), {first, b, c});
+        }
+      }
+      at += count;
+    }
+  }
+  if (m.indices.empty()) throw file_error(path, "the OBJ file has no faces");
+  return m;
+}
+
+namespace {
+
+enum class PlyType { I8, U8, I16, U16, I32, U32, F32, F64 };
+
+bool ply_type(const std::string& name, PlyType& t) {
+  static const std::pair<const char*, PlyType> table[] = {
+      {"char", PlyType::I8},   {"int8", PlyType::I8},     {"uchar", PlyType::U8},   {"uint8", PlyType::U8},
+      {"short", PlyType::I16}, {"int16", PlyType::I16},   {"ushort", PlyType::U16}, {"uint16", PlyType::U16},
+      {"int", PlyType::I32},   {"int32", PlyType::I32},   {"uint", PlyType::U32},   {"uint32", PlyType::U32},
+      {"float", PlyType::F32}, {"float32", PlyType::F32}, {"double", PlyType::F64}, {"float64", PlyType::F64}};
+  for (const auto& [n, v] : table)
+    if (name == n) return t = v, true;
+  return false;
+}
+
+size_t ply_size(PlyType t) {
+  switch (t) {
+    case PlyType::I8:
+    case PlyType::U8:
+      return 1;
+    case PlyType::I16:
+    case PlyType::U16:
+      return 2;
+    case PlyType::I32:
+    case PlyType::U32:
+    case PlyType::F32:
+      return 4;
+    case PlyType::F64:
+      return 8;
+  }
+  return 1;
+}
+
+struct PlyProperty {
+  std::string name;
+  PlyType type = PlyType::F32;
+  bool list = false;
+  PlyType count_type = PlyType::U8;
+};
+
+struct PlyElement {
+  std::string name;
+  uint64_t count = 0;
+  std::vector<PlyProperty> properties;
+};
+
+// Reads values of a PLY body, ASCII or binary, with every read bounds-checked.
+class PlyBody {
+ public:
+  PlyBody(const std::string& path, const std::string& data, size_t at, int format)
+      : path_(path), data_(data), at_(at), format_(format) {}
+
+  double read(PlyType t) {
+    if (format_ == 0) return ascii();
+    const size_t n = ply_size(t);
+    if (at_ + n > data_.size()) throw file_error(path_, "PLY data ends early");
+    unsigned char b[8];
+    std::memcpy(b, data_.data() + at_, n);
+    at_ += n;
+    const bool big = format_ == 2;
+    if (big != (std::endian::native == std::endian::big))
+      for (size_t i = 0; i < n / 2; ++i) std::swap(b[i], b[n - 1 - i]);
+    switch (t) {
+      case PlyType::I8:
+        return double(int8_t(b[0]));
+      case PlyType::U8:
+        return double(b[0]);
+      case PlyType::I16: {
+        int16_t v;
+        std::memcpy(&v, b, 2);
+        return v;
+      }
+      case PlyType::U16: {
+        uint16_t v;
+        std::memcpy(&v, b, 2);
+        return v;
+      }
+      case PlyType::I32: {
+        int32_t v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::U32: {
+        uint32_t v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::F32: {
+        float v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::F64: {
+        double v;
+        std::memcpy(&v, b, 8);
+        return v;
+      }
+    }
+    return 0;
+  }
+  size_t remaining() const { return data_.size() - at_; }
+
+ private:
+  double ascii() {
+    while (at_ < data_.size() && std::isspace(static_cast<unsigned char>(data_[at_]))) ++at_;
+    const size_t start = at_;
+    while (at_ < data_.size() && !std::isspace(static_cast<unsigned char>(data_[at_]))) ++at_;
+    if (start == at_) throw file_error(path_, "PLY data ends early");
+    const std::string token = data_.substr(start, at_ - start);
+    char* end = nullptr;
+    const double v = std::strtod(token.c_str(), &end);
+    if (end != token.c_str() + token.size()) throw file_error(path_, "PLY value '" + token + "' is not a number");
+    return v;
+  }
+  const std::string& path_;
+  const std::string& data_;
+  size_t at_;
+  int format_;  // 0 ascii, 1 binary little endian, 2 binary big endian
+};
+
+}  // namespace
+
+Mesh read_ply(const std::string& path) {
+  const std::string data = read_whole(path);
+  // Header: lines up to "end_header".
+  std::vector<PlyElement> elements;
+  int format = -1;
+  size_t at = 0;
+  bool first = true, ended = false;
+  while (at < data.size() && !ended) {
+    size_t eol = data.find('\n', at);
+    if (eol == std::string::npos) throw file_error(path, "PLY header has no end_header line");
+    std::string line = data.substr(at, eol - at);
+    at = eol + 1;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    std::istringstream s(line);
+    std::string word;
+    s >> word;
+    if (first) {
+      if (word != "ply") throw file_error(path, "not a PLY file (no 'ply' magic line)");
+      first = false;
+      continue;
+    }
+    if (word == "format") {
+      std::string f, version;
+      s >> f >> version;
+      if (f == "ascii")
+        format = 0;
+      else if (f == "binary_little_endian")
+        format = 1;
+      else if (f == "binary_big_endian")
+        format = 2;
+      else
+        throw file_error(path, "unknown PLY format '" + f + "'");
+    } else if (word == "element") {
+      PlyElement e;
+      s >> e.name >> e.count;
+      if (!s) throw file_error(path, "malformed PLY element line '" + line + "'");
+      limits::require_at_most(path, "PLY element count", e.count, limits::kMeshElements);
+      elements.push_back(e);
+    } else if (word == "property") {
+      if (elements.empty()) throw file_error(path, "PLY property before any element");
+      PlyProperty p;
+      std::string type;
+      s >> type;
+      if (type == "list") {
+        std::string count_type, item_type;
+        s >> count_type >> item_type >> p.name;
+        p.list = true;
+        if (!ply_type(count_type, p.count_type) || !ply_type(item_type, p.type))
+          throw file_error(path, "unknown PLY list types in '" + line + "'");
+      } else {
+        s >> p.name;
+        if (!ply_type(type, p.type)) throw file_error(path, "unknown PLY property type '" + type + "'");
+      }
+      if (p.name.empty()) throw file_error(path, "malformed PLY property line '" + line + "'");
+      elements.back().properties.push_back(p);
+    } else if (word == "end_header") {
+      ended = true;
+    } else if (word != "comment" && word != "obj_info" && !word.empty()) {
+      throw file_error(path, "unknown PLY header line '" + line + "'");
+    }
+  }
+  if (!ended) throw file_error(path, "PLY header has no end_header line");
+  if (format < 0) throw file_error(path, "PLY header has no format line");
+
+  Mesh m;
+  PlyBody body(path, data, at, format);
+  uint64_t vertex_count = 0;
+  bool have_vertices = false, have_faces = false;
+  for (const PlyElement& e : elements) {
+    // Each entry takes at least one byte (binary) or one character: a count beyond the file's
+    // size is refused before anything is allocated.
+    if (e.count > body.remaining()) throw file_error(path, "PLY element '" + e.name + "' is larger than the file");
+    if (e.name == "vertex") {
+      have_vertices = true;
+      vertex_count = e.count;
+      auto find = [&](std::initializer_list<const char*> names) {
+        for (size_t i = 0; i < e.properties.size(); ++i)
+          for (const char* n : names)
+            if (!e.properties[i].list && e.properties[i].name == n) return int(i);
+        return -1;
+      };
+      const int x = find({"x"}), y = find({"y"}), z = find({"z"});
+      if (x < 0 || y < 0 || z < 0) throw file_error(path, "PLY vertices need x, y and z");
+      const int nx = find({"nx"}), ny = find({"ny"}), nz = find({"nz"});
+      const int u = find({"u", "s", "texture_u", "texture_s"}), v = find({"v", "t", "texture_v", "texture_t"});
+      const bool normals = nx >= 0 && ny >= 0 && nz >= 0, uvs = u >= 0 && v >= 0;
+      m.positions.reserve(size_t(e.count) + 1);
+      std::vector<double> values(e.properties.size());
+      for (uint64_t i = 0; i < e.count; ++i) {
+        for (size_t k = 0; k < e.properties.size(); ++k) {
+          const PlyProperty& p = e.properties[k];
+          if (p.list) {
+            const double n = body.read(p.count_type);
+            if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
+            for (uint64_t j = 0; j < uint64_t(n); ++j) body.read(p.type);
+            values[k] = 0;
+          } else {
+            values[k] = body.read(p.type);
+          }
+        }
+        const Vec3f pos{float(values[size_t(x)]), float(values[size_t(y)]), float(values[size_t(z)])};
+        check_finite(path, "a vertex position", pos.x + pos.y + pos.z);
+        m.positions.push_back(pos);
+        if (normals)
+          m.normals.push_back({float(values[size_t(nx)]), float(values[size_t(ny)]), float(values[size_t(nz)])});
+        if (uvs) m.uvs.push_back({float(values[size_t(u)]), float(values[size_t(v)])});
+      }
+    } else if (e.name == "face") {
+      if (!have_vertices) throw file_error(path, "PLY faces come before the vertices");
+      have_faces = true;
+      int list = -1;
+      for (size_t i = 0; i < e.properties.size(); ++i)
+        if (e.properties[i].list &&
+            (e.properties[i].name == "vertex_indices" || e.properties[i].name == "vertex_index"))
+          list = int(i);
+      if (list < 0) throw file_error(path, "PLY faces need a vertex_indices list");
+      std::vector<uint32_t> face;
+      for (uint64_t i = 0; i < e.count; ++i) {
+        for (size_t k = 0; k < e.properties.size(); ++k) {
+          const PlyProperty& p = e.properties[k];
+          if (!p.list) {
+            body.read(p.type);
+            continue;
+          }
+          const double n = body.read(p.count_type);
+          if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
+          face.clear();
+          for (uint64_t j = 0; j < uint64_t(n); ++j) {
+            const double idx = body.read(p.type);
+            if (int(k) == list) {
+              if (!(idx >= 0) || idx >= double(vertex_count) || idx != std::floor(idx))
+                throw file_error(
+                    path, "PLY face refers to vertex " + std::to_string(idx) + " of " + std::to_string(vertex_count));
+              face.push_back(uint32_t(idx));
+            }
+          }
+          if (int(k) == list)
+            for (size_t j = 1; j + 1 < face.size(); ++j) {
+              limits::require_at_most(path, "triangle count", m.indices.size() / 3 + 1, limits::kMeshElements);
+              m.indices.insert(m.indices.end(), {face[0], face[j], face[j + 1]});
+            }
+        }
+      }
+    } else {
+      for (uint64_t i = 0; i < e.count; ++i)
+        for (const PlyProperty& p : e.properties) {
+          if (!p.list) {
+            body.read(p.type);
+            continue;
+          }
+          const double n = body.read(p.count_type);
+          if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
+          for (uint64_t j = 0; j < uint64_t(n); ++j) body.read(p.type);
+        }
+    }
+  }
+  if (!have_vertices || !have_faces || m.indices.empty()) throw file_error(path, "the PLY file has no faces");
+  for (const Vec3f& n : m.normals) check_finite(path, "a normal", n.x + n.y + n.z);
+  for (const Vec2f& uv : m.uvs) check_finite(path, "a texture coordinate", uv.x + uv.y);
+  return m;
+}
+
+Mesh make_sphere(int segments) {
+  Mesh m;
+  const int rings = segments / 2;
+  const float pi = 3.14159265358979f;
+  for (int j = 0; j <= rings; ++j) {
+    const float v = float(j) / float(rings), theta = pi * (1.f - v);  // v = 0 at the south pole (−z)
+    for (int i = 0; i <= segments; ++i) {
+      const float u = float(i) / float(segments), phi = 2.f * pi * u;
+      const Vec3f n{std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
+      m.positions.push_back(n);
+      m.normals.push_back(n);
+      m.uvs.push_back({u, v});
+    }
+  }
+  const uint32_t row = uint32_t(segments + 1);
+  for (int j = 0; j < rings; ++j)
+    for (int i = 0; i < segments; ++i) {
+      const uint32_t a = uint32_t(j) * row + uint32_t(i), b = a + 1, c = a + row, d = c + 1;
+      // Counter-clockwise seen from outside: (b − a) × (c − a) points outwards.
+      if (j > 0) m.indices.insert(m.indices.end(), {a, b, c});
+      if (j + 1 < rings) m.indices.insert(m.indices.end(), {b, d, c});
+    }
+  return m;
+}
+
+}  // namespace bl

@@ -1,0 +1,315 @@
+// Mitsuba 3 XML scenes and OBJ/PLY meshes: the Mitsuba Cornell box written as XML with its
+// shapes in OBJ and PLY files renders like scenes/mitsuba-cornell/scene.json; mesh readers
+// (polygons, negative OBJ indices, ASCII and big-endian PLY); every unsupported construct is an
+// error naming the plugin and its line.
+#include <catch2/catch.hpp>
+#include <nlohmann/json.hpp>
+
+#include <bit>
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <string>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/mesh_io.h"
+#include "engine/scene/scene_load.h"
+#include "test_scenes.h"
+
+using namespace bl;
+using nlohmann::json;
+
+namespace {
+
+std::string cornell_json() { return std::string(BL_SOURCE_DIR) + "/scenes/mitsuba-cornell/scene.json"; }
+
+void write_obj(const std::string& path, const json& shape) {
+  std::ofstream f(path);
+  char line[160];
+  const bool normals = shape.contains("normals"), uvs = shape.contains("uvs");
+  for (const auto& p : shape["positions"]) {
+    std::snprintf(line, sizeof line, "v %.9g %.9g %.9g\n", p[0].get<double>(), p[1].get<double>(), p[2].get<double>());
+    f << line;
+  }
+  if (normals)
+    for (const auto& n : shape["normals"]) {
+      std::snprintf(line, sizeof line, "vn %.9g %.9g %.9g\n", n[0].get<double>(), n[1].get<double>(),
+                    n[2].get<double>());
+      f << line;
+    }
+  if (uvs)
+    for (const auto& t : shape["uvs"]) {
+      std::snprintf(line, sizeof line, "vt %.9g %.9g\n", t[0].get<double>(), t[1].get<double>());
+      f << line;
+    }
+  for (const auto& tri : shape["indices"]) {
+    f << "f";
+    for (const auto& i : tri) {
+      const long k = i.get<long>() + 1;
+      f << " " << k;
+      if (uvs || normals) f << "/" << (uvs ? std::to_string(k) : "") << (normals ? "/" + std::to_string(k) : "");
+    }
+    f << "\n";
+  }
+}
+
+// Binary big-endian PLY (the byte order that needs swapping on this machine).
+void write_ply(const std::string& path, const json& shape) {
+  std::ofstream f(path, std::ios::binary);
+  const bool normals = shape.contains("normals"), uvs = shape.contains("uvs");
+  f << "ply\nformat binary_big_endian 1.0\ncomment written by test_xml\nelement vertex " << shape["positions"].size()
+    << "\nproperty float x\nproperty float y\nproperty float z\n";
+  if (normals) f << "property float nx\nproperty float ny\nproperty float nz\n";
+  if (uvs) f << "property float u\nproperty float v\n";
+  f << "element face " << shape["indices"].size() << "\nproperty list uchar int vertex_indices\nend_header\n";
+  auto put = [&](auto v) {
+    unsigned char b[sizeof v];
+    std::memcpy(b, &v, sizeof v);
+    if (std::endian::native == std::endian::little)
+      for (size_t i = 0; i < sizeof v / 2; ++i) std::swap(b[i], b[sizeof v - 1 - i]);
+    f.write(reinterpret_cast<const char*>(b), sizeof v);
+  };
+  for (size_t i = 0; i < shape["positions"].size(); ++i) {
+    for (int c = 0; c < 3; ++c) put(shape["positions"][i][size_t(c)].get<float>());
+    if (normals)
+      for (int c = 0; c < 3; ++c) put(shape["normals"][i][size_t(c)].get<float>());
+    if (uvs)
+      for (int c = 0; c < 2; ++c) put(shape["uvs"][i][size_t(c)].get<float>());
+  }
+  for (const auto& tri : shape["indices"]) {
+    put(uint8_t(3));
+    for (const auto& i : tri) put(int32_t(i.get<int>()));
+  }
+}
+
+std::string rgb(const json& v) {
+  char b[96];
+  std::snprintf(b, sizeof b, "%.9g, %.9g, %.9g", v[0].get<double>(), v[1].get<double>(), v[2].get<double>());
+  return b;
+}
+
+// scenes/mitsuba-cornell as a Mitsuba XML file: shapes alternate between OBJ and PLY files.
+std::string write_cornell_xml(const std::string& dir) {
+  std::ifstream in(cornell_json());
+  const json s = json::parse(in);
+  const json& cam = s["cameras"][0];
+  std::ostringstream x;
+  x << "<scene version=\"3.0.0\">\n  <default name=\"spp\" value=\"" << s["integrator"]["spp"] << "\"/>\n"
+    << "  <integrator type=\"path\">\n    <integer name=\"max_depth\" value=\"" << s["integrator"]["max_depth"]
+    << "\"/>\n    <integer name=\"rr_depth\" value=\"" << s["integrator"]["rr_depth"] << "\"/>\n  </integrator>\n"
+    << "  <sensor type=\"perspective\">\n    <float name=\"fov\" value=\"" << cam["fov"].get<double>() << "\"/>\n"
+    << "    <string name=\"fov_axis\" value=\"x\"/>\n    <float name=\"near_clip\" value=\""
+    << cam["near_clip"].get<double>() << "\"/>\n    <transform name=\"to_world\">\n      <lookat origin=\""
+    << rgb(cam["origin"]) << "\" target=\"" << rgb(cam["target"]) << "\" up=\"" << rgb(cam["up"]) << "\"/>\n"
+    << "    </transform>\n    <sampler type=\"independent\"><integer name=\"sample_count\" value=\"$spp\"/></sampler>\n"
+    << "    <film type=\"hdrfilm\">\n      <integer name=\"width\" value=\"" << cam["resolution"][0] << "\"/>\n"
+    << "      <integer name=\"height\" value=\"" << cam["resolution"][1] << "\"/>\n"
+    << "      <rfilter type=\"box\"/>\n    </film>\n  </sensor>\n";
+  for (auto it = s["materials"].begin(); it != s["materials"].end(); ++it)
+    x << "  <bsdf type=\"diffuse\" id=\"" << it.key() << "\">\n    <rgb name=\"reflectance\" value=\""
+      << rgb(it.value()["albedo"]) << "\"/>\n  </bsdf>\n";
+  int k = 0;
+  for (const auto& shape : s["shapes"]) {
+    const bool obj = k++ % 2 == 0;
+    const std::string file = shape["name"].get<std::string>() + (obj ? ".obj" : ".ply");
+    if (obj)
+      write_obj(dir + "/" + file, shape);
+    else
+      write_ply(dir + "/" + file, shape);
+    x << "  <shape type=\"" << (obj ? "obj" : "ply") << "\" id=\"" << shape["name"].get<std::string>() << "\">\n"
+      << "    <string name=\"filename\" value=\"" << file << "\"/>\n"
+      << (obj ? "    <boolean name=\"flip_tex_coords\" value=\"false\"/>\n" : "") << "    <ref id=\""
+      << shape["material"].get<std::string>() << "\"/>\n";
+    if (shape.contains("emitter"))
+      x << "    <emitter type=\"area\"><rgb name=\"radiance\" value=\"" << rgb(shape["emitter"]["radiance"])
+        << "\"/></emitter>\n";
+    x << "  </shape>\n";
+  }
+  x << "</scene>\n";
+  std::ofstream(dir + "/cornell.xml") << x.str();
+  return dir + "/cornell.xml";
+}
+
+std::string write(const std::string& dir, const std::string& name, const std::string& text) {
+  std::ofstream(dir + "/" + name) << text;
+  return dir + "/" + name;
+}
+
+std::string error_of(const std::string& path) {
+  try {
+    load_scene(path);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
+
+}  // namespace
+
+TEST_CASE("the Mitsuba Cornell box as XML with OBJ and PLY meshes renders like its JSON scene", "[xml]") {
+  const std::string dir = test::temp_dir("xml-cornell");
+  auto xml = load_scene(write_cornell_xml(dir));
+  auto ref = load_scene(cornell_json());
+  REQUIRE(xml->meshes.size() == ref->meshes.size());
+  CHECK(xml->settings.spp == ref->settings.spp);
+  CHECK(xml->settings.max_depth == ref->settings.max_depth);
+  for (Scene* s : {xml.get(), ref.get()}) {
+    s->cameras[0].width = s->cameras[0].height = 48;
+    s->cameras[0].update();
+  }
+  const Image a = render(*xml, {0, 16, 3, false}), b = render(*ref, {0, 16, 3, false});
+  double diff = 0, sum = 0;
+  size_t differing = 0;
+  for (size_t i = 0; i < a.data.size(); ++i) {
+    diff += std::abs(double(a.data[i]) - b.data[i]);
+    sum += b.data[i];
+    differing += a.data[i] != b.data[i];
+  }
+  INFO("pixels values that differ: " << differing << " of " << a.data.size() << ", mean |diff| / mean " << diff / sum);
+  CHECK(sum > 0);
+  // Same meshes and materials; the camera frame goes through lookat → matrix → origin/target/up,
+  // which may round its last bits differently: allow 1e-4 of the mean brightness.
+  CHECK(diff / sum < 1e-4);
+}
+
+TEST_CASE("OBJ and PLY readers: polygons, relative indices, ASCII PLY, flipped texture coordinates", "[xml][mesh]") {
+  const std::string dir = test::temp_dir("xml-mesh");
+  // A quad with negative (relative) indices and a pentagon: fans of 2 and 3 triangles.
+  write(dir, "poly.obj",
+        "# comment\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+        "f -4/-4 -3/-3 -2/-2 -1/-1\nv 2 0 0\nv 3 0 0\nv 3 1 0\nv 2.5 2 0\nv 2 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0.5 1\nvt 0 1\nf 5/5 6/6 7/7 8/8 9/9\n");
+  Mesh m = read_obj(dir + "/poly.obj", true);
+  CHECK(m.triangle_count() == 5);
+  CHECK(m.positions.size() == 9);
+  REQUIRE(m.uvs.size() == 9);
+  CHECK(m.uvs[0].y == 1.f);  // v flipped (Mitsuba's default)
+  CHECK(read_obj(dir + "/poly.obj", false).uvs[0].y == 0.f);
+  write(dir, "quad.ply",
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float s\nproperty float t\nelement face 1\nproperty list uchar uint vertex_indices\nend_header\n"
+        "0 0 0 0 0\n1 0 0 1 0\n1 1 0 1 1\n0 1 0 0 1\n4 0 1 2 3\n");
+  Mesh q = read_ply(dir + "/quad.ply");
+  CHECK(q.triangle_count() == 2);
+  REQUIRE(q.uvs.size() == 4);
+  CHECK(q.uvs[2].x == 1.f);
+  CHECK(q.normals.empty());
+  // The same through a JSON scene: obj/ply shape types.
+  write(dir, "scene.json",
+        R"({"cameras": [{"origin": [0.5, 0.5, 3], "target": [0.5, 0.5, 0], "fov": 60, "resolution": [16, 16]}],
+  "materials": {"m": {"type": "diffuse", "albedo": 0.5}},
+  "shapes": [{"name": "a", "type": "obj", "file": "poly.obj", "material": "m"},
+             {"name": "b", "type": "ply", "file": "quad.ply", "material": "m", "transform": {"translate": [0, 0, -1]}},
+             {"name": "c", "type": "sphere", "material": "m", "transform": {"scale": 0.2}}],
+  "environment": {"type": "constant", "radiance": [1, 1, 1]}})");
+  auto scene = load_scene(dir + "/scene.json");
+  CHECK(scene->meshes.size() == 3);
+  CHECK(scene->meshes[2].triangle_count() == 64 * 32 * 2 - 2 * 64);
+}
+
+TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
+  const std::string dir = test::temp_dir("xml-badmesh");
+  const std::pair<const char*, const char*> cases[] = {
+      {"v 0 0 0\nv 1 0 0\nf 1 2 7\n", "face refers to vertex 7"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//2 3//1\n", "face refers to normal 2"},
+      {"v 0 0 0\n", "no faces"},
+      {"v 1e39 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "NaN or infinite"},
+  };
+  for (const auto& [text, message] : cases) {
+    INFO(text);
+    write(dir, "bad.obj", text);
+    try {
+      read_obj(dir + "/bad.obj", true);
+      FAIL("no error");
+    } catch (const InputError& e) {
+      CHECK_THAT(e.what(), Catch::Contains(message) && Catch::Contains("bad.obj"));
+    }
+  }
+  const std::pair<const char*, const char*> plys[] = {
+      {"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n", "need x, y and z"},
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0 3 0 1 9\n",
+       "refers to vertex 9"},
+      {"ply\nformat binary_little_endian 1.0\nelement vertex 200000000\nproperty float x\nproperty float y\n"
+       "property float z\nend_header\n",
+       "larger than the file"},
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0\n",
+       "ends early"},
+      {"PLY\n", "not a PLY file"},
+      {"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no end_header"},
+  };
+  for (const auto& [text, message] : plys) {
+    INFO(text);
+    write(dir, "bad.ply", text);
+    try {
+      read_ply(dir + "/bad.ply");
+      FAIL("no error");
+    } catch (const InputError& e) {
+      CHECK_THAT(e.what(), Catch::Contains(message) && Catch::Contains("bad.ply"));
+    }
+  }
+}
+
+TEST_CASE("unsupported XML constructs are errors naming the plugin and the line", "[xml]") {
+  const std::string dir = test::temp_dir("xml-errors");
+  write(dir, "quad.obj", "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3 4\n");
+  const std::string sensor =
+      "<sensor type=\"perspective\"><float name=\"fov\" value=\"40\"/>"
+      "<film type=\"hdrfilm\"><integer name=\"width\" value=\"8\"/><integer name=\"height\" value=\"8\"/>"
+      "<rfilter type=\"box\"/></film></sensor>\n";
+  const std::string shape = "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/></shape>\n";
+  struct Case {
+    std::string body, message;
+  };
+  const Case cases[] = {
+      {sensor + shape + "<bsdf type=\"dielectric\" id=\"glass\"/>\n",
+       "line 4: <bsdf type=\"dielectric\">: unsupported bsdf type"},
+      {sensor + "<shape type=\"disk\"/>\n", "line 3: <shape type=\"disk\">: unsupported shape type"},
+      {sensor + shape + "<emitter type=\"point\"/>\n", "line 4: <emitter type=\"point\">: unsupported emitter"},
+      {sensor + shape + "<emitter type=\"envmap\"/>\n", "envmap emitters are not supported"},
+      {sensor + shape + "<integrator type=\"direct\"/>\n",
+       "line 4: <integrator type=\"direct\">: unsupported integrator"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                "<float name=\"bogus\" value=\"1\"/></shape>\n",
+       "line 3: <float name=\"bogus\">: unsupported property of line 3: <shape type=\"obj\">"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"$mesh\"/></shape>\n", "unknown parameter $mesh"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/><ref id=\"nope\"/></shape>\n",
+       "no element with id 'nope'"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                "<bsdf type=\"roughconductor\"><string name=\"material\" value=\"Au\"/></bsdf></shape>\n",
+       "named conductor material 'Au' is not supported"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                "<bsdf type=\"diffuse\"><spectrum name=\"reflectance\" value=\"400:0.1, 700:0.5\"/></bsdf></shape>\n",
+       "wavelength-sampled spectra are not supported"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                "<medium type=\"homogeneous\" name=\"interior\"/></shape>\n",
+       "participating media in XML scenes are not supported"},
+      {"<sensor type=\"thinlens\"/>\n" + shape, "line 2: <sensor type=\"thinlens\">: unsupported sensor"},
+      {shape, "the scene has no <sensor>"},
+      {sensor + shape + "<include filename=\"other.xml\"/>\n", "line 4: <include>: unsupported <include>"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/><transform name=\"to_world\">"
+                "<rotate x=\"1\" angle=\"abc\"/></transform></shape>\n",
+       "'abc' is not a finite number"},
+      {sensor + shape + "<shape", "malformed XML"},
+  };
+  for (const Case& c : cases) {
+    INFO(c.body);
+    const std::string path = write(dir, "scene.xml", "<scene version=\"3.0.0\">\n" + c.body + "</scene>\n");
+    const std::string e = error_of(path);
+    CHECK_THAT(e, Catch::Contains(c.message) && Catch::StartsWith(path + ": "));
+    CHECK(e.find('\n') == std::string::npos);
+  }
+  // A harmless attribute is one warning, not an error; defaults substitute.
+  const std::string ok = write(dir, "ok.xml",
+                               "<scene version=\"3.0.0\"><default name=\"w\" value=\"8\"/>"
+                               "<sensor type=\"perspective\"><float name=\"fov\" value=\"40\"/>"
+                               "<float name=\"far_clip\" value=\"1000\"/><film type=\"hdrfilm\">"
+                               "<integer name=\"width\" value=\"$w\"/><integer name=\"height\" value=\"6\"/>"
+                               "<string name=\"pixel_format\" value=\"rgb\"/></film></sensor>" +
+                                   shape + "</scene>\n");
+  auto scene = load_scene(ok);
+  CHECK(scene->cameras[0].width == 8);
+  CHECK(scene->cameras[0].height == 6);
+}
