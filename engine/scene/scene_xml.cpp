@@ -284,6 +284,15 @@ class XmlScene {
   double get_number(Props& p, const std::string& name, double fallback) {
     return has(p, name) ? value(get(p, name)) : fallback;
   }
+  // An integer property within [lo, hi], checked before any conversion (huge values are errors).
+  long get_integer(Props& p, const std::string& name, long fallback, long lo, long hi) {
+    if (!has(p, name)) return fallback;
+    const pugi::xml_node n = get(p, name);
+    const double v = value(n);
+    if (v != std::floor(v) || v < double(lo) || v > double(hi))
+      fail(n, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+    return long(v);
+  }
   std::string get_string(Props& p, const std::string& name, const std::string& fallback) {
     return has(p, name) ? attr(get(p, name), "value") : fallback;
   }
@@ -461,8 +470,8 @@ class XmlScene {
       fail(n, "unsupported integrator (path, prb, volpath or prbvolpath)");
     Props p = props(n);
     json& it = root_["integrator"];
-    if (has(p, "max_depth")) it["max_depth"] = long(get_number(p, "max_depth", 6));
-    if (has(p, "rr_depth")) it["rr_depth"] = long(get_number(p, "rr_depth", 5));
+    if (has(p, "max_depth")) it["max_depth"] = get_integer(p, "max_depth", 6, -1, 1 << 20);
+    if (has(p, "rr_depth")) it["rr_depth"] = get_integer(p, "rr_depth", 5, 0, 1 << 20);
     if (has(p, "hide_emitters")) it["hide_emitters"] = get_bool(p, "hide_emitters", false);
     for (const pugi::xml_node& o : p.objects) fail(o, "nested elements in an integrator are not supported");
     finish(n, p);
@@ -493,8 +502,8 @@ class XmlScene {
       if (tag(c) == "film") {
         if (plugin_type(c) != "hdrfilm") fail(c, "unsupported film (hdrfilm only)");
         Props f = props(c);
-        width = int(get_number(f, "width", 768));
-        height = int(get_number(f, "height", 576));
+        width = int(get_integer(f, "width", 768, 1, long(limits::kImageSide)));
+        height = int(get_integer(f, "height", 576, 1, long(limits::kImageSide)));
         if (width < 1 || height < 1) fail(c, "film size must be positive");
         limits::check_image_size(path_ + ": " + where(c), uint64_t(width), uint64_t(height));
         for (const pugi::xml_node& r : f.objects) {
@@ -510,9 +519,12 @@ class XmlScene {
       } else if (tag(c) == "sampler") {
         Props s = props(c);
         const std::string st = plugin_type(c);
+        if (st != "independent" && st != "stratified" && st != "multijitter" && st != "orthogonal" && st != "ldsampler")
+          fail(c, "unknown sampler type");
         if (st != "independent") warn(c, "sampler", "sampler '" + st + "' is rendered with independent samples");
-        if (has(s, "sample_count")) root_["integrator"]["spp"] = long(get_number(s, "sample_count", 4));
-        if (has(s, "seed")) root_["integrator"]["seed"] = long(get_number(s, "seed", 0));
+        if (has(s, "sample_count"))
+          root_["integrator"]["spp"] = get_integer(s, "sample_count", 4, 1, long(limits::kSpp));
+        if (has(s, "seed")) root_["integrator"]["seed"] = get_integer(s, "seed", 0, 0, 4294967295L);
         finish(c, s, {"jitter", "scramble_type"});
       } else {
         fail(c, "unexpected element in a sensor");
