@@ -311,9 +311,13 @@ Mesh read_ply(const std::string& path) {
   uint64_t vertex_count = 0;
   bool have_vertices = false, have_faces = false;
   for (const PlyElement& e : elements) {
-    // Each entry takes at least one byte (binary) or one character: a count beyond the file's
-    // size is refused before anything is allocated.
-    if (e.count > body.remaining()) throw file_error(path, "PLY element '" + e.name + "' is larger than the file");
+    // The least an entry can take: its scalar sizes and list counts (binary), or a digit and a
+    // separator per value (ASCII). A count the rest of the file cannot hold is refused before
+    // anything is allocated.
+    uint64_t least = 0;
+    for (const PlyProperty& p : e.properties) least += format == 0 ? 2 : ply_size(p.list ? p.count_type : p.type);
+    if (least == 0 ? e.count > body.remaining() : e.count > body.remaining() / least)
+      throw file_error(path, "PLY element '" + e.name + "' is larger than the file");
     if (e.name == "vertex") {
       have_vertices = true;
       vertex_count = e.count;

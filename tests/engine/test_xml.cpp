@@ -236,6 +236,9 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
        "larger than the file"},
       {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0\n",
+       "'vertex' is larger than the file"},
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1\n",
        "ends early"},
       {"PLY\n", "not a PLY file"},
       {"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no end_header"},
