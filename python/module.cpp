@@ -209,48 +209,42 @@ void require(Scene& scene, const std::optional<std::vector<std::string>>& params
   scene.params.require_grad(names);
 }
 
-py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& method, const PassArgs& a,
-                     std::optional<uint64_t> adjoint_seed, const std::optional<std::vector<std::string>>& params) {
+// backward and grad: the image argument (d_image, or the target when `loss` is given) checked
+// against the film, the request built, and the pass run without the GIL.
+GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* what, const std::string* loss,
+                             const std::string& method, const PassArgs& a, std::optional<uint64_t> adjoint_seed,
+                             const std::optional<std::vector<std::string>>& params) {
   refresh(s);
   CameraScope scope(*s.scene, a);
   const Camera& cam = scope.camera();
-  auto arr = checked_array(d_image, {cam.height, cam.width, 3}, "d_image");
-  Image adjoint(cam.width, cam.height, 3);
-  std::copy(arr.data(), arr.data() + arr.size(), adjoint.data.begin());
+  auto arr = checked_array(image, {cam.height, cam.width, 3}, what);
+  Image img(cam.width, cam.height, 3);
+  std::copy(arr.data(), arr.data() + arr.size(), img.data.begin());
   GradientRequest rq;
   rq.method = parse_method(method);
+  if (loss) {
+    rq.loss = parse_loss(*loss);
+    rq.target = &img;
+  } else {
+    rq.adjoint_image = &img;
+  }
   rq.pass = pass_options(*s.scene, a);
   rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
-  rq.adjoint_image = &adjoint;
   require(*s.scene, params);
-  {
-    py::gil_scoped_release release;
-    compute_gradient(*s.scene, rq);
-  }
+  py::gil_scoped_release release;
+  return compute_gradient(*s.scene, rq);
+}
+
+py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& method, const PassArgs& a,
+                     std::optional<uint64_t> adjoint_seed, const std::optional<std::vector<std::string>>& params) {
+  gradient_pass(s, d_image, "d_image", nullptr, method, a, adjoint_seed, params);
   return gradients_of(*s.scene);
 }
 
 py::tuple grad_py(PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,
                   const PassArgs& a, std::optional<uint64_t> adjoint_seed,
                   const std::optional<std::vector<std::string>>& params) {
-  refresh(s);
-  CameraScope scope(*s.scene, a);
-  const Camera& cam = scope.camera();
-  auto arr = checked_array(target, {cam.height, cam.width, 3}, "target");
-  Image t(cam.width, cam.height, 3);
-  std::copy(arr.data(), arr.data() + arr.size(), t.data.begin());
-  GradientRequest rq;
-  rq.method = parse_method(method);
-  rq.loss = parse_loss(loss);
-  rq.pass = pass_options(*s.scene, a);
-  rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
-  rq.target = &t;
-  require(*s.scene, params);
-  GradientResult r;
-  {
-    py::gil_scoped_release release;
-    r = compute_gradient(*s.scene, rq);
-  }
+  GradientResult r = gradient_pass(s, target, "target", &loss, method, a, adjoint_seed, params);
   return py::make_tuple(r.loss, gradients_of(*s.scene), image_array(std::move(r.image)));
 }
 
@@ -311,7 +305,8 @@ PYBIND11_MODULE(_backlight, m) {
 
   m.def("load", &load, py::arg("path"), py::arg("set") = py::none(), py::kw_only(), py::arg("max_depth") = py::none(),
         py::arg("rr_depth") = py::none(),
-        "Loads a JSON, glTF or Mitsuba 3 XML scene. set: {name: value} overrides, as the CLI's --set (a number, a list of numbers, "
+        "Loads a JSON, glTF or Mitsuba 3 XML scene. set: {name: value} overrides, as the CLI's --set (a number, a list "
+        "of numbers, "
         "or an image file name); max_depth and rr_depth as the CLI's --max-depth and --rr-depth.");
   m.def(
       "render",

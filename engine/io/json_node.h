@@ -136,9 +136,9 @@ inline std::string line_col(const std::string& text, size_t byte) {
   return std::to_string(line) + ":" + std::to_string(col > 1 ? col - 1 : 1);
 }
 
-// The whole of a JSON file (scene, optimizer config): a regular file within limits::kFileBytes.
-// A FIFO would block forever and /dev/zero would never end.
-inline std::string read_json_file(const std::string& path) {
+// The whole of an input file (scene, optimizer config, XML, mesh): a regular file within
+// limits::kFileBytes. A FIFO would block forever and /dev/zero would never end.
+inline std::string read_input_file(const std::string& path) {
   namespace fs = std::filesystem;
   require_input_file(path);
   limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
@@ -146,6 +146,7 @@ inline std::string read_json_file(const std::string& path) {
   if (!f) throw file_error(path, "cannot open");
   return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
 }
+inline std::string read_json_file(const std::string& path) { return read_input_file(path); }
 
 // Parses `text` (the contents of `file`); syntax errors report line:column.
 inline json parse_json_text(const std::string& text, const std::string& file) {

@@ -12,21 +12,13 @@
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/io/json_node.h"
 
 namespace bl {
 
 namespace fs = std::filesystem;
 
 namespace {
-
-// The whole file, within limits::kFileBytes (a FIFO or /dev/zero is refused by require_input_file).
-std::string read_whole(const std::string& path) {
-  require_input_file(path);
-  limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw file_error(path, "cannot open");
-  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
-}
 
 void check_finite(const std::string& path, const char* what, float v) {
   if (!std::isfinite(v)) throw file_error(path, std::string(what) + " is NaN or infinite");
@@ -35,7 +27,7 @@ void check_finite(const std::string& path, const char* what, float v) {
 }  // namespace
 
 Mesh read_obj(const std::string& path, bool flip_tex_coords) {
-  const std::string text = read_whole(path);
+  const std::string text = read_input_file(path);
   tinyobj::ObjReaderConfig config;
   config.triangulate = false;  // fans below: tinyobjloader's polygon triangulation trusts its input
   config.vertex_color = false;
@@ -221,6 +213,21 @@ class PlyBody {
     return 0;
   }
   size_t remaining() const { return data_.size() - at_; }
+  // A list's length: each item takes at least a byte, so it cannot exceed what is left.
+  uint64_t list_length(PlyType count_type) {
+    const double n = read(count_type);
+    if (!(n >= 0) || n > double(remaining()) || n != std::floor(n))
+      throw file_error(path_, "PLY list length out of range");
+    return uint64_t(n);
+  }
+  // Reads past one property (a value, or a whole list).
+  void skip(const PlyProperty& p) {
+    if (!p.list) {
+      read(p.type);
+      return;
+    }
+    for (uint64_t j = 0, n = list_length(p.count_type); j < n; ++j) read(p.type);
+  }
 
  private:
   double ascii() {
@@ -243,7 +250,7 @@ class PlyBody {
 }  // namespace
 
 Mesh read_ply(const std::string& path) {
-  const std::string data = read_whole(path);
+  const std::string data = read_input_file(path);
   // Header: lines up to "end_header".
   std::vector<PlyElement> elements;
   int format = -1;
@@ -338,9 +345,7 @@ Mesh read_ply(const std::string& path) {
         for (size_t k = 0; k < e.properties.size(); ++k) {
           const PlyProperty& p = e.properties[k];
           if (p.list) {
-            const double n = body.read(p.count_type);
-            if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
-            for (uint64_t j = 0; j < uint64_t(n); ++j) body.read(p.type);
+            body.skip(p);
             values[k] = 0;
           } else {
             values[k] = body.read(p.type);
@@ -366,40 +371,27 @@ Mesh read_ply(const std::string& path) {
       for (uint64_t i = 0; i < e.count; ++i) {
         for (size_t k = 0; k < e.properties.size(); ++k) {
           const PlyProperty& p = e.properties[k];
-          if (!p.list) {
-            body.read(p.type);
+          if (int(k) != list) {
+            body.skip(p);
             continue;
           }
-          const double n = body.read(p.count_type);
-          if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
           face.clear();
-          for (uint64_t j = 0; j < uint64_t(n); ++j) {
+          for (uint64_t j = 0, n = body.list_length(p.count_type); j < n; ++j) {
             const double idx = body.read(p.type);
-            if (int(k) == list) {
-              if (!(idx >= 0) || idx >= double(vertex_count) || idx != std::floor(idx))
-                throw file_error(
-                    path, "PLY face refers to vertex " + std::to_string(idx) + " of " + std::to_string(vertex_count));
-              face.push_back(uint32_t(idx));
-            }
+            if (!(idx >= 0) || idx >= double(vertex_count) || idx != std::floor(idx))
+              throw file_error(
+                  path, "PLY face refers to vertex " + std::to_string(idx) + " of " + std::to_string(vertex_count));
+            face.push_back(uint32_t(idx));
           }
-          if (int(k) == list)
-            for (size_t j = 1; j + 1 < face.size(); ++j) {
-              limits::require_at_most(path, "triangle count", m.indices.size() / 3 + 1, limits::kMeshElements);
-              m.indices.insert(m.indices.end(), {face[0], face[j], face[j + 1]});
-            }
+          for (size_t j = 1; j + 1 < face.size(); ++j) {
+            limits::require_at_most(path, "triangle count", m.indices.size() / 3 + 1, limits::kMeshElements);
+            m.indices.insert(m.indices.end(), {face[0], face[j], face[j + 1]});
+          }
         }
       }
     } else {
       for (uint64_t i = 0; i < e.count; ++i)
-        for (const PlyProperty& p : e.properties) {
-          if (!p.list) {
-            body.read(p.type);
-            continue;
-          }
-          const double n = body.read(p.count_type);
-          if (!(n >= 0) || n > double(body.remaining())) throw file_error(path, "PLY list length out of range");
-          for (uint64_t j = 0; j < uint64_t(n); ++j) body.read(p.type);
-        }
+        for (const PlyProperty& p : e.properties) body.skip(p);
     }
   }
   if (!have_vertices || !have_faces || m.indices.empty()) throw file_error(path, "the PLY file has no faces");

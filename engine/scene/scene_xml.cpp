@@ -625,12 +625,7 @@ class XmlScene {
 }  // namespace
 
 std::unique_ptr<Scene> load_xml_scene(const std::string& path) {
-  require_input_file(path);
-  limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw file_error(path, "cannot open");
-  std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
-  XmlScene xml(path, std::move(text));
+  XmlScene xml(path, read_input_file(path));
   return build_json_scene(xml.translate(), path);
 }
 
