@@ -14,6 +14,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/dist/dist.h"
 #include "engine/integrators/gradient.h"
 #include "engine/integrators/loss.h"
 #include "engine/integrators/render.h"
@@ -117,11 +118,11 @@ Image read_target(const std::string& path, const Camera& cam, const char* what) 
 
 int cmd_render(SceneFlags& f, const std::string& output) {
   auto limit = thread_limit(f.threads);
-  check_output_format(output);
+  if (dist::is_root()) check_output_format(output);  // only rank 0 writes
   auto scene = f.load();
   PassStats stats;
   Image img = render(*scene, f.pass(*scene), &stats);
-  write_image(output, img);
+  if (dist::is_root()) write_image(output, img);
   std::fprintf(stderr, "render: %dx%d, %d spp, %.2f s, %ssamples/s, %srays/s -> %s\n", img.width, img.height,
                scene->settings.spp, stats.seconds, human_count(double(stats.samples) / stats.seconds).c_str(),
                human_count(double(stats.rays) / stats.seconds).c_str(), output.c_str());
@@ -129,7 +130,7 @@ int cmd_render(SceneFlags& f, const std::string& output) {
 }
 
 int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
-  if (!dump.empty()) check_output_folder(dump);  // before printing anything
+  if (!dump.empty() && dist::is_root()) check_output_folder(dump);  // before printing anything
   auto scene = f.load();
   const auto& params = scene->params;
   if (as_json) {
@@ -142,7 +143,7 @@ int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
       std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(),
                   params[int(i)].size());
   }
-  if (!dump.empty()) {
+  if (!dump.empty() && dist::is_root()) {
     ensure_output_folder(dump);
     dump_parameter_values(*scene, dump);
   }
@@ -217,7 +218,7 @@ GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std:
 
 int cmd_grad(SceneFlags& f, const GradFlags& g) {
   auto limit = thread_limit(f.threads);
-  check_output_folder(g.out);  // before the work: a bad --out is reported at once
+  if (dist::is_root()) check_output_folder(g.out);  // before the work: a bad --out is reported at once
   auto scene = f.load();
   Image target, adjoint;
   GradientRequest rq = make_request(f, *scene, g.method, g.loss, g.target, g.adjoint_image, target, adjoint);
@@ -226,6 +227,8 @@ int cmd_grad(SceneFlags& f, const GradFlags& g) {
   rq.pass.replay_whole_paths = g.replay_whole_paths;
   scene->params.require_grad(g.params);
   GradientResult r = compute_gradient(*scene, rq);
+  r.peak_rss_bytes = dist::gather(dist::peak_rss_bytes());
+  if (!dist::is_root()) return 0;
   write_gradient_outputs(*scene, rq, r, g.out);
   std::fprintf(stderr, "grad: %s, %s %.6g, primal %.2f s, adjoint %.2f s -> %s\n", method_name(rq.method),
                rq.adjoint_image ? "functional" : loss_name(rq.loss), r.loss, r.primal_seconds, r.adjoint_seconds,
@@ -260,9 +263,32 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   return ok ? 0 : 1;
 }
 
-namespace {}  // namespace
+namespace {
+int run(int argc, char** argv);
+}
 
+// Under mpirun every rank runs the same command (engine/dist/dist.h); exit codes and error lines
+// follow the same rules as on one process.
 int main(int argc, char** argv) {
+  dist::Session session(argc, argv);
+  try {
+    const int code = run(argc, argv);
+    dist::finish();
+    return code;
+  } catch (const dist::PeerFailed& e) {
+    return e.code;  // another rank failed before any collective operation, and printed why
+  } catch (const InputError& e) {
+    return dist::fail(2, e.what());
+  } catch (const std::filesystem::filesystem_error& e) {
+    // A path the user gave (too long, not permitted, a file where a folder was meant).
+    return dist::fail(2, e.path1().string().substr(0, 200) + ": " + e.code().message());
+  } catch (const std::exception& e) {
+    return dist::fail(1, std::string("internal error: ") + e.what());
+  }
+}
+
+namespace {
+int run(int argc, char** argv) {
   CLI::App app{"backlight: a differentiable path tracer with radiative backpropagation"};
   app.require_subcommand(1);
   app.set_help_all_flag("--help-all", "Help for every command");
@@ -311,9 +337,7 @@ int main(int argc, char** argv) {
     bool known = false;
     for (const auto* sub : app.get_subcommands({})) known = known || sub->get_name() == command;
     if (!known) {
-      std::fprintf(stderr, "backlight: unknown command '%s' (expected render, params, grad, check or optimize)\n",
-                   command.c_str());
-      return 2;
+      throw InputError("unknown command '" + command + "' (expected render, params, grad, check or optimize)");
     }
   }
   try {
@@ -323,25 +347,13 @@ int main(int argc, char** argv) {
   } catch (const CLI::CallForAllHelp& e) {
     return app.exit(e);
   } catch (const CLI::ParseError& e) {
-    std::fprintf(stderr, "backlight: %s (see --help)\n", e.what());
-    return 2;
+    throw InputError(std::string(e.what()) + " (see --help)");
   }
-  try {
-    if (*render_cmd) return cmd_render(render_flags, output);
-    if (*params_cmd) return cmd_params(params_flags, as_json, dump);
-    if (*grad_cmd) return cmd_grad(grad_flags, gf);
-    if (*check_cmd) return cmd_check(check_flags, cf);
-    if (*optimize_cmd) return run_optimize(config, resume, opt_threads, opt_quiet);
-  } catch (const InputError& e) {
-    std::fprintf(stderr, "backlight: %s\n", e.what());
-    return 2;
-  } catch (const std::filesystem::filesystem_error& e) {
-    // A path the user gave (too long, not permitted, a file where a folder was meant).
-    std::fprintf(stderr, "backlight: %s: %s\n", e.path1().string().substr(0, 200).c_str(), e.code().message().c_str());
-    return 2;
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "backlight: internal error: %s\n", e.what());
-    return 1;
-  }
+  if (*render_cmd) return cmd_render(render_flags, output);
+  if (*params_cmd) return cmd_params(params_flags, as_json, dump);
+  if (*grad_cmd) return cmd_grad(grad_flags, gf);
+  if (*check_cmd) return cmd_check(check_flags, cf);
+  if (*optimize_cmd) return run_optimize(config, resume, opt_threads, opt_quiet);
   return 0;
 }
+}  // namespace

@@ -7,6 +7,7 @@
 #include <atomic>
 #include <limits>
 
+#include "engine/dist/dist.h"
 #include "engine/integrators/path.h"
 #include "engine/integrators/render.h"
 #include "engine/io/progress.h"
@@ -198,8 +199,9 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   tbb::enumerable_thread_specific<Scratch> scratch([&] {
     return Scratch{std::vector<SampleRecord>(size_t(o.spp)), {}};
   });
-  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb",
-                    uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
+  Progress progress(method == AdjointMethod::Prb ? "prb" : "rb", owned_pixels(cam.width, cam.height) * uint64_t(o.spp),
+                    "spp", o.progress);
+  progress.set_ranks(dist::size());
   std::atomic<uint64_t> rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     const uint64_t rays_before = Geometry::thread_ray_count();
@@ -258,10 +260,11 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   });
   progress.finish();
   sink.reduce();
+  if (image_out) dist::complete_image(*image_out);
   PassStats stats;
   stats.seconds = progress.elapsed();
   stats.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
-  stats.rays = rays.load();
+  stats.rays = dist::sum(rays.load());
   return stats;
 }
 

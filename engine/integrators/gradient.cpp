@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/core/errors.h"
+#include "engine/dist/dist.h"
 #include "engine/integrators/taped.h"
 
 namespace bl {
@@ -49,7 +50,19 @@ double functional(const Image& a, const Image& img) {
 }
 }  // namespace
 
+namespace {
+GradientResult local_gradient(Scene& scene, const GradientRequest& rq);
+}
+
 GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
+  GradientResult result = local_gradient(scene, rq);
+  if (!rq.accumulate) dist::reduce_gradients(scene.params);
+  return result;
+}
+
+namespace {
+// This rank's share of the gradient (all of it on one process).
+GradientResult local_gradient(Scene& scene, const GradientRequest& rq) {
   if (!rq.accumulate) scene.params.zero_grad();
   GradientResult result;
   const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
@@ -104,6 +117,7 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
   }
   return result;
 }
+}  // namespace
 
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
                                         int directions, double eps, uint64_t direction_seed) {
@@ -226,6 +240,13 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
                   {"adjoint_seconds", r.adjoint_seconds},
                   {"total_seconds", r.primal_seconds + r.adjoint_seconds}};
   if (rq.method == GradientMethod::Taped) j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}};
+  if (!r.peak_rss_bytes.empty()) {
+    // One entry per MPI rank (one on a single process): the memory each process needed.
+    nlohmann::json ranks = nlohmann::json::array();
+    for (size_t i = 0; i < r.peak_rss_bytes.size(); ++i)
+      ranks.push_back({{"rank", i}, {"peak_rss_mb", r.peak_rss_bytes[i] / 1048576.0}});
+    j["ranks"] = ranks;
+  }
   nlohmann::json params = nlohmann::json::object();
   for (const auto& p : scene.params.all()) {
     if (!p.requires_grad) continue;

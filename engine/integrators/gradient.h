@@ -21,7 +21,9 @@ struct GradientRequest {
   PassOptions pass;                      // camera, spp, seed of the primal (loss) render
   uint64_t adjoint_seed = 0;             // seed of the adjoint pass (equal: exact derivative)
   size_t memory_budget = 0;              // taped mode only: bytes (0 = 80% of physical memory)
-  bool accumulate = false;               // add to the grad buffers instead of zeroing them first
+  // Add to the grad buffers instead of zeroing them first. Under MPI the gradient is then this
+  // rank's share: the caller sums it over ranks (dist::reduce_gradients) after its last pass.
+  bool accumulate = false;
 };
 
 struct GradientResult {
@@ -29,11 +31,14 @@ struct GradientResult {
   Image image;      // the primal render the loss was computed on
   double primal_seconds = 0, adjoint_seconds = 0;
   uint64_t tape_bytes = 0, tape_entries = 0;  // taped mode
+  std::vector<double> peak_rss_bytes;         // per MPI rank (one entry on one process), when known
 };
 
 // Computes the gradient into the ParamStore's grad buffers (zeroed first) for the parameters
 // marked requires_grad. When adjoint_seed == seed, the primal render and the adjoint pass are
 // fused: each pixel is rendered once, its loss gradient taken, and its paths replayed.
+// Under MPI every rank calls it; the pixels are split among them and, unless request.accumulate,
+// the gradient is summed over ranks before it returns (image and loss are whole on every rank).
 GradientResult compute_gradient(Scene& scene, const GradientRequest& request);
 
 // One row of a directional-derivative check.

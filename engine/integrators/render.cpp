@@ -4,15 +4,29 @@
 
 #include <atomic>
 
+#include "engine/dist/dist.h"
 #include "engine/integrators/path.h"
 #include "engine/io/progress.h"
 
 namespace bl {
 
+uint64_t owned_pixels(int width, int height) {
+  constexpr int kTile = dist::kTile;
+  const int tiles_x = (width + kTile - 1) / kTile, tiles = dist::tile_count(width, height);
+  uint64_t n = 0;
+  for (int t = 0; t < tiles; ++t)
+    if (dist::owns_tile(t, tiles)) {
+      const int x0 = (t % tiles_x) * kTile, y0 = (t / tiles_x) * kTile;
+      n += uint64_t(std::min(x0 + kTile, width) - x0) * uint64_t(std::min(y0 + kTile, height) - y0);
+    }
+  return n;
+}
+
 void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn) {
-  constexpr int kTile = 16;
-  const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
-  tbb::parallel_for(0, tiles_x * tiles_y, [&](int t) {
+  constexpr int kTile = dist::kTile;
+  const int tiles_x = (width + kTile - 1) / kTile, tiles = dist::tile_count(width, height);
+  tbb::parallel_for(0, tiles, [&](int t) {
+    if (!dist::owns_tile(t, tiles)) return;  // another MPI rank's
     int x0 = (t % tiles_x) * kTile, y0 = (t / tiles_x) * kTile;
     tile_fn(x0, y0, std::min(x0 + kTile, width), std::min(y0 + kTile, height));
   });
@@ -21,7 +35,8 @@ void for_each_tile(int width, int height, const std::function<void(int, int, int
 Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
   const Camera& cam = scene.cameras.at(size_t(o.camera));
   Image image(cam.width, cam.height, 3);
-  Progress progress("render", uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp), "spp", o.progress);
+  Progress progress("render", owned_pixels(cam.width, cam.height) * uint64_t(o.spp), "spp", o.progress);
+  progress.set_ranks(dist::size());
   std::atomic<uint64_t> rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     const uint64_t rays_before = Geometry::thread_ray_count();
@@ -43,10 +58,12 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
     progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
   });
   progress.finish();
+  dist::complete_image(image);
+  const uint64_t all_rays = dist::sum(rays.load());
   if (stats) {
     stats->seconds = progress.elapsed();
     stats->samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
-    stats->rays = rays.load();
+    stats->rays = all_rays;
   }
   return image;
 }

@@ -25,7 +25,8 @@ struct PassStats {
 };
 
 // Primal render: box filter, pixel value = mean of its samples. Bitwise identical for any
-// thread count: each pixel's samples are summed in a fixed order by a single task.
+// thread count and any number of MPI ranks: each pixel's samples are summed in a fixed order by a
+// single task. Under MPI, every rank returns the whole image; stats count all ranks' rays.
 Image render(const Scene& scene, const PassOptions& options, PassStats* stats = nullptr);
 
 enum class AdjointMethod { Prb, Rb };
@@ -39,10 +40,16 @@ using PixelAdjoint = std::function<Vec3f(size_t pixel, const Vec3f& value)>;
 // the scene and accumulates parameter gradients into the ParamStore's grad buffers (which the
 // caller zeroes; see ParamStore::require_grad). Memory: per-thread state only.
 // `image_out`, when given, receives the pixel values rendered on the way.
+// Under MPI a rank transports its own tiles' δI: its grad buffers hold its share until the
+// caller sums them with dist::reduce_gradients (once, after all the passes of a gradient);
+// `image_out` is completed on every rank.
 PassStats backward(Scene& scene, const PassOptions& options, AdjointMethod method, const PixelAdjoint& adjoint,
                    Image* image_out = nullptr);
 
-// Runs `tile_fn(x0, y0, x1, y1)` over 16×16 tiles in parallel (TBB).
+// Runs `tile_fn(x0, y0, x1, y1)` over 16×16 tiles in parallel (TBB): under MPI, over this
+// rank's tiles only (engine/dist/dist.h).
 void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn);
+// Pixels in this rank's tiles (all of them on one rank).
+uint64_t owned_pixels(int width, int height);
 
 }  // namespace bl

@@ -11,6 +11,7 @@
 #include <cstdio>
 
 #include "engine/core/errors.h"
+#include "engine/dist/dist.h"
 #include "engine/integrators/path.h"
 #include "engine/io/progress.h"
 #include "engine/core/tape.h"
@@ -65,6 +66,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
     throw InputError("--method taped records one render and differentiates it: --adjoint-seed must equal --seed");
   const Camera& cam = scene.cameras.at(size_t(rq.pass.camera));
   const size_t pixels = size_t(cam.width) * size_t(cam.height);
+  const size_t own_pixels = size_t(owned_pixels(cam.width, cam.height));  // this MPI rank's tiles
   const size_t budget = rq.memory_budget ? rq.memory_budget : size_t(0.8 * double(physical_memory_bytes()));
   GradientResult result;
   result.image = Image(cam.width, cam.height, 3);
@@ -76,7 +78,8 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   std::atomic<uint64_t> trigger_pixels{0};
 
   // 1. Record the whole render.
-  Progress progress("taped record", uint64_t(pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
+  Progress progress("taped record", uint64_t(own_pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
+  progress.set_ranks(dist::size());
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
     if (over_budget.load(std::memory_order_relaxed)) return;
     Tape& tape = tapes.local();
@@ -105,8 +108,8 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
     // the projection or the actual size passes the budget.
     uint64_t total = entries += tape.size() - before;
     uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
-    double projected = double(total) * double(kBytesPerEntry) * double(pixels) / double(done);
-    if ((done * 20 >= pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget)) {
+    double projected = double(total) * double(kBytesPerEntry) * double(own_pixels) / double(done);
+    if ((done * 20 >= own_pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget)) {
       // Keep the projection that tripped the guard (other tiles may project less meanwhile).
       bool expected = false;
       if (over_budget.compare_exchange_strong(expected, true))
@@ -118,10 +121,11 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
     throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
-                     " (from the " + std::to_string(100 * trigger_pixels.load() / pixels) +
+                     " (from the " + std::to_string(100 * trigger_pixels.load() / own_pixels) +
                      "% of pixels recorded), more than the memory budget of " + megabytes(double(budget)) +
                      " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
   progress.finish();
+  dist::complete_image(result.image);
   result.primal_seconds = progress.elapsed();
 
   // 2. Loss (or functional) on the finished image, and its image-space adjoint.

@@ -71,6 +71,11 @@ void Progress::finish() {
   if (enabled_) print(done_.load(), true);
 }
 
+void Progress::set_ranks(int ranks) {
+  std::lock_guard<std::mutex> lock(print_mutex_);
+  ranks_ = ranks;
+}
+
 void Progress::set_note(const std::string& note) {
   std::lock_guard<std::mutex> lock(print_mutex_);
   note_ = note;
@@ -82,12 +87,14 @@ void Progress::print(uint64_t done, bool final) {
   double fraction = total_ ? double(done) / double(total_) : 1.0;
   double rate = t > 0 ? double(done) / t : 0.0;
   double eta = rate > 0 ? double(total_ - std::min(done, total_)) / rate : INFINITY;
+  rate *= double(ranks_);
+  const std::string all = ranks_ > 1 ? " (" + std::to_string(ranks_) + " ranks)" : "";
   const int width = 28;
   int filled = int(fraction * width);
   std::string bar(size_t(filled), '=');
   if (filled < width) bar += '>', bar += std::string(size_t(width - filled - 1), ' ');
-  std::fprintf(stderr, "%s%s [%s] %5.1f%% %s%s/s %s %s %s%s", tty_ ? "\r" : "", label_.c_str(), bar.c_str(),
-               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), note_.c_str(), final ? "elapsed" : "ETA",
+  std::fprintf(stderr, "%s%s [%s] %5.1f%% %s%s/s%s %s %s %s%s", tty_ ? "\r" : "", label_.c_str(), bar.c_str(),
+               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), all.c_str(), note_.c_str(), final ? "elapsed" : "ETA",
                human_seconds(final ? t : eta).c_str(), (final || !tty_) ? "\n" : "\033[K");
   std::fflush(stderr);
 }

@@ -18,6 +18,9 @@ class Progress {
   void finish();                           // prints the final state and a newline
   void set_note(const std::string& note);  // extra text after the rate (e.g. the current loss)
   double elapsed() const;
+  // A pass split over `ranks` MPI ranks: `total` is this rank's share, and the rate shown is
+  // that of all ranks, estimated as ranks × this rank's (tiles are interleaved, so shares are even).
+  void set_ranks(int ranks);
 
  private:
   void print(uint64_t done, bool final);
@@ -29,6 +32,7 @@ class Progress {
   std::atomic<int64_t> last_print_ns_{0};
   std::mutex print_mutex_;
   std::string note_;
+  int ranks_ = 1;
 };
 
 // "1.23 M" style formatting for rates and counts.

@@ -21,6 +21,7 @@
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
 #include "engine/core/sampler.h"
+#include "engine/dist/dist.h"
 #include "engine/integrators/gradient.h"
 #include "engine/io/grid_view.h"
 #include "engine/io/json_node.h"
@@ -492,11 +493,16 @@ class Job {
     std::vector<std::string> names;
     for (const auto& p : c_.params) names.push_back(p.name);
     scene_->params.require_grad(names);
-    ensure_output_folder(c_.output);
-    // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
-    remove_stale_temporaries(c_.output);
+    // Under MPI (engine/dist/dist.h) every rank runs this job on its share of each pass's
+    // pixels; only rank 0 writes and prints. All ranks read the scene, the targets and, on
+    // --resume, the checkpoint: the output folder must be on a filesystem every rank sees.
+    if (root_) {
+      ensure_output_folder(c_.output);
+      // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
+      remove_stale_temporaries(c_.output);
+    }
     prepare_targets();
-    matplotlib_ = probe_matplotlib();
+    matplotlib_ = root_ && probe_matplotlib();
     if (!matplotlib_ && !quiet_)
       std::fprintf(stderr, "optimize: python3-matplotlib not found: simple plots; with it, run %s %s\n",
                    plot_script().c_str(), c_.output.c_str());
@@ -513,6 +519,7 @@ class Job {
  private:
   Config c_;
   bool quiet_;
+  const bool root_ = dist::is_root();
   std::unique_ptr<Scene> scene_;
   std::vector<int> cameras_;
   std::vector<Image> targets_;
@@ -565,7 +572,7 @@ class Job {
   }
 
   void prepare_targets() {
-    fs::create_directories(out("targets"));
+    if (root_) fs::create_directories(out("targets"));
     std::unique_ptr<Scene> reference;
     for (size_t v = 0; v < cameras_.size(); ++v) {
       const Camera& cam = scene_->cameras[size_t(cameras_[v])];
@@ -581,13 +588,16 @@ class Job {
       if (c_.reference_overrides.empty())
         throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
       // Rendered from the reference variant and cached; a cache of the wrong size is re-rendered.
+      // Rank 0 decides (all ranks must take the same branch: the render is collective).
       const std::string cached = out("targets/" + cam.name + ".exr");
-      if (fs::exists(cached)) {
+      bool use_cache = false;
+      if (root_ && fs::exists(cached)) {
         Image t = read_image(cached, false);
-        if (t.width == cam.width && t.height == cam.height) {
-          targets_.push_back(std::move(t));
-          continue;
-        }
+        use_cache = t.width == cam.width && t.height == cam.height;
+      }
+      if (dist::root_value(use_cache)) {
+        targets_.push_back(read_image(cached, false));
+        continue;
       }
       if (!reference) {
         reference = load_scene(c_.scene);
@@ -598,7 +608,7 @@ class Job {
           for (auto& rc : reference->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
       }
       Image t = render(*reference, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
-      write_image(cached, t);
+      if (root_) write_image(cached, t);
       targets_.push_back(std::move(t));
     }
     // Ground truth for the parameter RMSE: the reference variant's values.
@@ -626,8 +636,9 @@ class Job {
   }
 
   void snapshot_initial() {
-    if (fs::exists(out("initial.exr"))) return;
-    write_image(out("initial.exr"), render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false}));
+    if (dist::root_value(fs::exists(out("initial.exr")))) return;
+    const Image initial = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
+    if (root_) write_image(out("initial.exr"), initial);
   }
 
   // Stage of a parameter at an iteration (the last stage extends to the end).
@@ -667,8 +678,10 @@ class Job {
         std::swap(order[size_t(v)], order[mix64(c_.seed + uint64_t(it) * 131 + uint64_t(v)) % uint64_t(v + 1)]);
       double loss = 0;
       Image first_view;
+      bool stop = false;
       for (int k = 0; k < per_iteration; ++k) {
-        if (interrupted) break;
+        // Ctrl-C (mpirun forwards it to every rank): all ranks stop at the same view.
+        if ((stop = dist::any(interrupted != 0))) break;
         const int v = order[size_t(k)];
         GradientRequest rq;
         rq.loss = c_.loss;
@@ -692,13 +705,14 @@ class Job {
           if (k == 0) first_view = std::move(r.image);
         }
       }
-      if (interrupted) {
+      if (stop) {
         progress.finish();
         write_checkpoint(it, seconds());
         std::fprintf(stderr, "optimize: interrupted; checkpoint of %d completed iteration(s) in %s\n", it,
                      c_.output.c_str());
         return 0;
       }
+      dist::reduce_gradients(scene_->params);  // the ranks' shares of every view, summed once
       loss /= per_iteration;
       for (auto& p : c_.params) {
         Param& param = scene_->params[p.handle];
@@ -776,6 +790,7 @@ class Job {
   }
 
   void write_validation() const {
+    if (!root_) return;
     std::string csv = "iteration,validation_loss,time_s\n";
     char line[96];
     for (const auto& r : validation_) {
@@ -789,6 +804,7 @@ class Job {
   // comparison of target, start and result, and the latest parameter snapshots. While the run
   // goes on it reloads itself every 15 s; it is rewritten at every snapshot and at the end.
   void write_report(int done, double seconds, bool finished) const {
+    if (!root_) return;
     auto fmt = [](double v) {
       char b[32];
       std::snprintf(b, sizeof b, "%.4g", v);
@@ -847,6 +863,7 @@ class Job {
   }
 
   void write_log() {
+    if (!root_) return;
     const bool has_rmse = !log_.empty() && log_.front().rmse >= 0;
     std::string csv = has_rmse ? "iteration,loss,time_s,param_rmse\n" : "iteration,loss,time_s\n";
     PlotSeries loss, error;
@@ -874,6 +891,7 @@ class Job {
   // loss.png and param_rmse.png drawn by matplotlib from the CSV files. Without it the built-in
   // plotter draws them at every iteration, and the command is printed once.
   void plot() {
+    if (!root_) return;
     if (!matplotlib_) return;
     if (run_python({plot_script(), c_.output}) == 0) return;
     matplotlib_ = false;
@@ -883,6 +901,7 @@ class Job {
   }
 
   void snapshot(int iteration, const Image& view) {
+    if (!root_) return;
     const std::string dir = out("snapshots");
     fs::create_directories(dir);
     char tag[32];
@@ -901,6 +920,7 @@ class Job {
   }
 
   void write_checkpoint(int next_iteration, double seconds) {
+    if (!root_) return;
     const std::string tmp = out("checkpoint.tmp"), final_dir = out("checkpoint"), old = out("checkpoint.old");
     remove_checkpoint_dir(tmp);
     fs::create_directories(tmp);
@@ -1010,6 +1030,9 @@ class Job {
   }
 
   void finish(double seconds) {
+    // compare.png: target | initial | final, for the first view (rendered by all ranks).
+    const Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
+    if (!root_) return;
     fs::create_directories(out("final"));
     json summary;
     summary["iterations"] = c_.iterations;
@@ -1065,8 +1088,6 @@ class Job {
       }
     }
     write_text_atomic(out("final/params.json"), final_params.dump(1) + "\n");
-    // compare.png: target | initial | final, for the first view.
-    Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
     write_image(out("final/view.exr"), final_view);
     Image initial = read_image(out("initial.exr"), false);
     const Image& target = targets_[0];

@@ -1,0 +1,35 @@
+// One rank: the build without MPI (see dist.h).
+#include <sys/resource.h>
+
+#include "engine/dist/dist.h"
+
+namespace bl::dist {
+
+Session::Session(int&, char**&) {}
+Session::~Session() = default;
+bool built_with_mpi() { return false; }
+int rank() { return 0; }
+int size() { return 1; }
+bool owns_tile(int, int) { return true; }
+void complete_image(Image&) {}
+void reduce_gradients(ParamStore&) {}
+double sum(double v) { return v; }
+uint64_t sum(uint64_t v) { return v; }
+double max(double v) { return v; }
+bool any(bool v) { return v; }
+bool root_value(bool v) { return v; }
+std::vector<double> gather(double v) { return {v}; }
+void barrier() {}
+FILE* error_stream() { return stderr; }
+int fail(int code, const std::string& message) {
+  std::fprintf(stderr, "backlight: %s\n", message.c_str());
+  return code;
+}
+void finish() {}
+double peak_rss_bytes() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_maxrss) * 1024.0;
+}
+
+}  // namespace bl::dist
