@@ -227,7 +227,9 @@ int cmd_grad(SceneFlags& f, const GradFlags& g) {
   rq.pass.replay_whole_paths = g.replay_whole_paths;
   scene->params.require_grad(g.params);
   GradientResult r = compute_gradient(*scene, rq);
+  const double mpi_seconds = dist::mpi_seconds();
   r.peak_rss_bytes = dist::gather(dist::peak_rss_bytes());
+  r.mpi_seconds = dist::gather(mpi_seconds);
   if (!dist::is_root()) return 0;
   write_gradient_outputs(*scene, rq, r, g.out);
   std::fprintf(stderr, "grad: %s, %s %.6g, primal %.2f s, adjoint %.2f s -> %s\n", method_name(rq.method),

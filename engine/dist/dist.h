@@ -86,4 +86,10 @@ void finish();
 // Peak resident set size of this process, in bytes (getrusage).
 double peak_rss_bytes();
 
+// Seconds this rank spent in MPI calls so far (waiting for slower ranks included) and the bytes
+// of gradient it contributed to reductions: the cost of distribution, for gradients.json and
+// bench/mpi. Zero on one rank.
+double mpi_seconds();
+double reduced_bytes();
+
 }  // namespace bl::dist

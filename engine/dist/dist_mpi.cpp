@@ -24,6 +24,13 @@ int g_rank = 0, g_size = 1;
 bool g_agreed = false;  // the first collective operation (the error agreement) has happened
 bool g_blocks = false;  // BACKLIGHT_MPI_SPLIT=blocks
 FILE* g_err = nullptr;  // the original stderr of a silenced rank
+double g_mpi_seconds = 0, g_reduced_bytes = 0;
+
+// Adds the lifetime of the scope to g_mpi_seconds.
+struct MpiTimer {
+  double start = MPI_Wtime();
+  ~MpiTimer() { g_mpi_seconds += MPI_Wtime() - start; }
+};
 
 // The first collective of every rank: did any rank fail before reaching it?
 void agree(bool failed, int code) {
@@ -40,6 +47,7 @@ void agree(bool failed, int code) {
 void collective() {
   if (g_session && !g_agreed) agree(false, 0);
 }
+
 
 int owner(int tile, int tiles) {
   if (g_blocks) return int(int64_t(tile) * g_size / std::max(tiles, 1));
@@ -115,6 +123,7 @@ bool owns_tile(int tile, int tiles) { return g_size == 1 || owner(tile, tiles) =
 void complete_image(Image& image) {
   if (g_size == 1) return;
   collective();
+  const MpiTimer timer;
   const int tiles_x = (image.width + kTile - 1) / kTile, tiles = tile_count(image.width, image.height);
   const size_t channels = size_t(image.channels);
   auto for_tiles_of = [&](int r, auto&& fn) {  // fn(x, y, value count of the row segment)
@@ -158,9 +167,11 @@ void complete_image(Image& image) {
 void reduce_gradients(ParamStore& params) {
   if (g_size == 1) return;
   collective();
+  const MpiTimer timer;
   constexpr size_t kSmall = size_t(1) << 16, kChunk = size_t(1) << 22;
   for (auto& p : params.all()) {
     if (!p.requires_grad || p.grad.empty()) continue;
+    g_reduced_bytes += double(p.grad.size()) * (p.grad.size() <= kSmall ? sizeof(double) : sizeof(float));
     if (p.grad.size() <= kSmall) {
       std::vector<double> g(p.grad.begin(), p.grad.end());
       sum_in_place(g.data(), g.size(), MPI_DOUBLE, kSmall);
@@ -174,6 +185,7 @@ void reduce_gradients(ParamStore& params) {
 double sum(double v) {
   if (g_size == 1) return v;
   collective();
+  const MpiTimer timer;
   double out = 0;
   MPI_Allreduce(&v, &out, 1, MPI_DOUBLE, MPI_SUM, MPI_COMM_WORLD);
   return out;
@@ -181,6 +193,7 @@ double sum(double v) {
 uint64_t sum(uint64_t v) {
   if (g_size == 1) return v;
   collective();
+  const MpiTimer timer;
   uint64_t out = 0;
   MPI_Allreduce(&v, &out, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD);
   return out;
@@ -188,6 +201,7 @@ uint64_t sum(uint64_t v) {
 double max(double v) {
   if (g_size == 1) return v;
   collective();
+  const MpiTimer timer;
   double out = 0;
   MPI_Allreduce(&v, &out, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD);
   return out;
@@ -195,6 +209,7 @@ double max(double v) {
 bool any(bool v) {
   if (g_size == 1) return v;
   collective();
+  const MpiTimer timer;
   int in = v ? 1 : 0, out = 0;
   MPI_Allreduce(&in, &out, 1, MPI_INT, MPI_MAX, MPI_COMM_WORLD);
   return out != 0;
@@ -202,6 +217,7 @@ bool any(bool v) {
 bool root_value(bool v) {
   if (g_size == 1) return v;
   collective();
+  const MpiTimer timer;
   int x = v ? 1 : 0;
   MPI_Bcast(&x, 1, MPI_INT, 0, MPI_COMM_WORLD);
   return x != 0;
@@ -209,6 +225,7 @@ bool root_value(bool v) {
 std::vector<double> gather(double v) {
   if (g_size == 1) return {v};
   collective();
+  const MpiTimer timer;
   std::vector<double> all(g_rank == 0 ? size_t(g_size) : 0);
   MPI_Gather(&v, 1, MPI_DOUBLE, all.data(), 1, MPI_DOUBLE, 0, MPI_COMM_WORLD);
   return all;
@@ -216,6 +233,7 @@ std::vector<double> gather(double v) {
 void barrier() {
   if (g_size == 1) return;
   collective();
+  const MpiTimer timer;
   MPI_Barrier(MPI_COMM_WORLD);
 }
 
@@ -245,6 +263,8 @@ int fail(int code, const std::string& message) {
 }
 
 void finish() { collective(); }
+double mpi_seconds() { return g_mpi_seconds; }
+double reduced_bytes() { return g_reduced_bytes; }
 
 double peak_rss_bytes() {
   rusage u{};

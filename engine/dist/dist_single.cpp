@@ -32,4 +32,7 @@ double peak_rss_bytes() {
   return double(u.ru_maxrss) * 1024.0;
 }
 
+double mpi_seconds() { return 0; }
+double reduced_bytes() { return 0; }
+
 }  // namespace bl::dist

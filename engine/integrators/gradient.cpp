@@ -243,8 +243,10 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
   if (!r.peak_rss_bytes.empty()) {
     // One entry per MPI rank (one on a single process): the memory each process needed.
     nlohmann::json ranks = nlohmann::json::array();
-    for (size_t i = 0; i < r.peak_rss_bytes.size(); ++i)
+    for (size_t i = 0; i < r.peak_rss_bytes.size(); ++i) {
       ranks.push_back({{"rank", i}, {"peak_rss_mb", r.peak_rss_bytes[i] / 1048576.0}});
+      if (i < r.mpi_seconds.size()) ranks.back()["mpi_seconds"] = r.mpi_seconds[i];
+    }
     j["ranks"] = ranks;
   }
   nlohmann::json params = nlohmann::json::object();

@@ -31,7 +31,8 @@ struct GradientResult {
   Image image;      // the primal render the loss was computed on
   double primal_seconds = 0, adjoint_seconds = 0;
   uint64_t tape_bytes = 0, tape_entries = 0;  // taped mode
-  std::vector<double> peak_rss_bytes;         // per MPI rank (one entry on one process), when known
+  // Per MPI rank (one entry on one process), when known: peak RSS, and seconds in MPI calls.
+  std::vector<double> peak_rss_bytes, mpi_seconds;
 };
 
 // Computes the gradient into the ParamStore's grad buffers (zeroed first) for the parameters

@@ -1032,6 +1032,9 @@ class Job {
   void finish(double seconds) {
     // compare.png: target | initial | final, for the first view (rendered by all ranks).
     const Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
+    const double mpi_seconds = dist::mpi_seconds(), reduced = dist::reduced_bytes();
+    const std::vector<double> rss = dist::gather(dist::peak_rss_bytes()), in_mpi = dist::gather(mpi_seconds),
+                              bytes = dist::gather(reduced);
     if (!root_) return;
     fs::create_directories(out("final"));
     json summary;
@@ -1043,6 +1046,11 @@ class Job {
     summary["views_per_iteration"] = c_.views_per_iteration;
     summary["spp"] = c_.spp;
     summary["adjoint_spp"] = c_.adjoint_spp;
+    // Each process of the run (MPI ranks; one on a single process), since this start or resume.
+    summary["ranks"] = json::array();
+    for (size_t r = 0; r < rss.size(); ++r)
+      summary["ranks"].push_back(
+          {{"rank", r}, {"peak_rss_mb", rss[r] / 1048576.0}, {"mpi_seconds", in_mpi[r]}, {"reduced_mb", bytes[r] / 1048576.0}});
     if (!validation_.empty()) {
       summary["validation_loss_initial"] = validation_.front().loss;
       summary["validation_loss_final"] = validation_.back().loss;

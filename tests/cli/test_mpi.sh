@@ -31,7 +31,7 @@ fail() { echo "FAIL: $*"; exit 1; }
 mpi() {  # mpi R COMMAND...: backlight on R ranks, one thread each
   local r="$1"
   shift
-  mpirun -q --oversubscribe -n "$r" "$bin" "$@"
+  mpirun -q --oversubscribe -n "$r" "$bin" "$@" 2> >(tee -a mpi_stderr.log >&2)
 }
 same_pixels() {  # same_pixels A B: every float equal (the files are not: EXR headers carry a date)
   idiff -fail 0 -warn 0 "$1" "$2" > /dev/null
