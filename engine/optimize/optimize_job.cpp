@@ -528,6 +528,7 @@ class Job {
   bool matplotlib_ = false;
   double elapsed_before_ = 0;  // seconds spent before a resume
   double initial_loss_ = -1;
+  double step_seconds_ = 0;  // regularizers, optimizer steps and sampling tables, since this start
 
   std::string out(const std::string& name) const { return (fs::path(c_.output) / name).string(); }
 
@@ -713,6 +714,7 @@ class Job {
         return 0;
       }
       dist::reduce_gradients(scene_->params);  // the ranks' shares of every view, summed once
+      const auto step_start = std::chrono::steady_clock::now();
       loss /= per_iteration;
       for (auto& p : c_.params) {
         Param& param = scene_->params[p.handle];
@@ -721,6 +723,8 @@ class Job {
         p.adam.step(param.value, param.grad);
       }
       scene_->prepare_sampling();
+      // Work every rank repeats in full (not divided among MPI ranks): bench/mpi's cost model.
+      step_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - step_start).count();
       if (initial_loss_ < 0 && log_.empty()) initial_loss_ = loss;
       log_.push_back({it, loss, seconds(), current_rmse()});
       write_log();
@@ -1034,7 +1038,7 @@ class Job {
     const Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
     const double mpi_seconds = dist::mpi_seconds(), reduced = dist::reduced_bytes();
     const std::vector<double> rss = dist::gather(dist::peak_rss_bytes()), in_mpi = dist::gather(mpi_seconds),
-                              bytes = dist::gather(reduced);
+                              bytes = dist::gather(reduced), steps = dist::gather(step_seconds_);
     if (!root_) return;
     fs::create_directories(out("final"));
     json summary;
@@ -1050,7 +1054,8 @@ class Job {
     summary["ranks"] = json::array();
     for (size_t r = 0; r < rss.size(); ++r)
       summary["ranks"].push_back(
-          {{"rank", r}, {"peak_rss_mb", rss[r] / 1048576.0}, {"mpi_seconds", in_mpi[r]}, {"reduced_mb", bytes[r] / 1048576.0}});
+          {{"rank", r}, {"peak_rss_mb", rss[r] / 1048576.0}, {"mpi_seconds", in_mpi[r]}, {"reduced_mb", bytes[r] / 1048576.0},
+           {"step_seconds", steps[r]}});
     if (!validation_.empty()) {
       summary["validation_loss_initial"] = validation_.front().loss;
       summary["validation_loss_final"] = validation_.back().loss;
