@@ -532,6 +532,18 @@ class Job {
 
   std::string out(const std::string& name) const { return (fs::path(c_.output) / name).string(); }
 
+  // FNV-1a over the bits of the optimized parameters: every MPI rank must end with the same.
+  uint64_t parameter_hash() const {
+    uint64_t h = 0xcbf29ce484222325ull;
+    for (const auto& p : c_.params)
+      for (float v : scene_->params[p.handle].value) {
+        uint32_t bits;
+        std::memcpy(&bits, &v, sizeof bits);
+        h = (h ^ bits) * 0x100000001b3ull;
+      }
+    return h;
+  }
+
   // Grids are written in their medium's box; pictures share one scale, the ground truth's maximum.
   VolumeGrid grid_of(const Param& p) const {
     VolumeGrid g = bl::grid_of(p);
@@ -1038,7 +1050,8 @@ class Job {
     const Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
     const double mpi_seconds = dist::mpi_seconds(), reduced = dist::reduced_bytes();
     const std::vector<double> rss = dist::gather(dist::peak_rss_bytes()), in_mpi = dist::gather(mpi_seconds),
-                              bytes = dist::gather(reduced), steps = dist::gather(step_seconds_);
+                              bytes = dist::gather(reduced), steps = dist::gather(step_seconds_),
+                              hashes = dist::gather(double(parameter_hash() >> 12));  // 52 bits: exact
     if (!root_) return;
     fs::create_directories(out("final"));
     json summary;
@@ -1055,7 +1068,7 @@ class Job {
     for (size_t r = 0; r < rss.size(); ++r)
       summary["ranks"].push_back(
           {{"rank", r}, {"peak_rss_mb", rss[r] / 1048576.0}, {"mpi_seconds", in_mpi[r]}, {"reduced_mb", bytes[r] / 1048576.0},
-           {"step_seconds", steps[r]}});
+           {"step_seconds", steps[r]}, {"parameter_hash", uint64_t(hashes[r])}});
     if (!validation_.empty()) {
       summary["validation_loss_initial"] = validation_.front().loss;
       summary["validation_loss_final"] = validation_.back().loss;

@@ -139,6 +139,11 @@ close o1/checkpoint/floor.albedo.value o2/checkpoint/floor.albedo.value ||
 same_pixels o1/targets/top.exr o2/targets/top.exr || fail "optimize on 2 ranks: target render differs"
 [ "$(wc -l < o2/loss.csv)" -eq 7 ] || fail "optimize on 2 ranks: loss.csv has $(wc -l < o2/loss.csv) lines"
 [ -f o2/summary.json ] && [ -f o2/report.html ] || fail "optimize on 2 ranks: outputs missing: $(ls o2)"
+"$py" -c "
+import json, sys
+r = json.load(open('o2/summary.json'))['ranks']
+sys.exit(0 if len(r) == 2 and r[0]['parameter_hash'] == r[1]['parameter_hash'] else 1)" ||
+  fail "optimize on 2 ranks: the ranks' parameters differ: $(grep -A30 ranks o2/summary.json)"
 
 # --- failures -----------------------------------------------------------------------------------
 out=$(mpi 2 render missing.json -o x.exr 2>&1)
