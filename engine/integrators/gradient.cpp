@@ -51,16 +51,6 @@ double functional(const Image& a, const Image& img) {
 }  // namespace
 
 namespace {
-GradientResult local_gradient(Scene& scene, const GradientRequest& rq);
-}
-
-GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
-  GradientResult result = local_gradient(scene, rq);
-  if (!rq.accumulate) dist::reduce_gradients(scene.params);
-  return result;
-}
-
-namespace {
 // This rank's share of the gradient (all of it on one process).
 GradientResult local_gradient(Scene& scene, const GradientRequest& rq) {
   if (!rq.accumulate) scene.params.zero_grad();
@@ -118,6 +108,12 @@ GradientResult local_gradient(Scene& scene, const GradientRequest& rq) {
   return result;
 }
 }  // namespace
+
+GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
+  GradientResult result = local_gradient(scene, rq);
+  if (!rq.accumulate) dist::reduce_gradients(scene.params);
+  return result;
+}
 
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
                                         int directions, double eps, uint64_t direction_seed) {

@@ -55,6 +55,8 @@ same_pixels r1.exr rb.exr || fail "render with the blocks split on 3 ranks diffe
 "$bin" render scene.json --spp 16 --seed 9 -q -o target.exr --set floor.albedo=truth.exr 2> /dev/null
 grad_args=(grad scene.json --spp 4 --threads 1 -q --target target.exr)
 "$bin" "${grad_args[@]}" --out g1 2> /dev/null || fail "grad on one process"
+"$bin" "${grad_args[@]}" --method taped --out t1 2> /dev/null || fail "taped grad on one process"
+mpi 2 "${grad_args[@]}" --method taped --out t2 2> /dev/null || fail "taped grad on 2 ranks"
 for r in 2 4; do
   mpi $r "${grad_args[@]}" --out g$r 2> /dev/null || fail "grad on $r ranks"
   same_pixels g1/image.exr g$r/image.exr || fail "grad on $r ranks: image differs"
@@ -81,15 +83,17 @@ def grad(d):
             out[name] = list(struct.unpack(f">{n}f", raw[start:start + 4 * n]))
     return j, out
 j1, g1 = grad("g1")
-for r in (2, 4):
-    jr, gr = grad(f"g{r}")
+for d, r in (("g2", 2), ("g4", 4), ("t2", 2)):
+    if d == "t2":
+        j1, g1 = grad("t1")
+    jr, gr = grad(d)
     assert jr["loss"] == j1["loss"], (r, jr["loss"], j1["loss"])
     assert len(jr["ranks"]) == r and all(x["peak_rss_mb"] > 1 for x in jr["ranks"]), jr["ranks"]
     for name, a in g1.items():
         b = gr[name]
         scale = max(abs(x) for x in a) or 1.0
         worst = max(abs(x - y) for x, y in zip(a, b))
-        print(f"R={r} {name}: max |diff| = {worst:.3g} of max |g| = {scale:.3g}")
+        print(f"{d}: {name}: max |diff| = {worst:.3g} of max |g| = {scale:.3g}")
         assert len(a) == len(b) and worst <= 1e-5 * scale, (r, name, worst, scale)
         assert any(x != 0 for x in b), (r, name, "all zero")
 PY
