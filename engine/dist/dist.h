@@ -62,7 +62,7 @@ double sum(double v);
 uint64_t sum(uint64_t v);
 double max(double v);
 bool any(bool v);
-bool root_value(bool v);  // rank 0's value, on every rank
+bool root_value(bool v);               // rank 0's value, on every rank
 std::vector<double> gather(double v);  // rank 0: one value per rank; others: empty
 void barrier();
 

@@ -44,10 +44,17 @@ void agree(bool failed, int code) {
   if (lowest != g_rank) throw PeerFailed{code};  // a lower rank failed too; it prints
 }
 
+// Fault injection for tests/cli/test_mpi.sh: BACKLIGHT_MPI_FAIL=RANK:N makes rank RANK fail at
+// its N-th collective operation, as a rank whose disk or memory gives out mid-run would.
+int g_fail_rank = -1;
+long g_fail_at = 0, g_collectives = 0;
+
 void collective() {
   if (g_session && !g_agreed) agree(false, 0);
+  if (++g_collectives == g_fail_at && g_rank == g_fail_rank)
+    throw std::runtime_error("injected failure (BACKLIGHT_MPI_FAIL) at collective operation " +
+                             std::to_string(g_collectives));
 }
-
 
 int owner(int tile, int tiles) {
   if (g_blocks) return int(int64_t(tile) * g_size / std::max(tiles, 1));
@@ -81,8 +88,8 @@ void sum_in_place(T* data, size_t n, MPI_Datatype type, size_t chunk) {
 Session::Session(int& argc, char**& argv) {
   // Only under a launcher (mpirun/srun set these): a plain `backlight ...` stays one process
   // and does not need a working MPI runtime.
-  const bool launched = std::getenv("OMPI_COMM_WORLD_SIZE") || std::getenv("PMIX_RANK") ||
-                        std::getenv("PMI_RANK") || std::getenv("PMI_SIZE");
+  const bool launched = std::getenv("OMPI_COMM_WORLD_SIZE") || std::getenv("PMIX_RANK") || std::getenv("PMI_RANK") ||
+                        std::getenv("PMI_SIZE");
   if (!launched) return;
   int provided = 0;
   MPI_Init_thread(&argc, &argv, MPI_THREAD_FUNNELED, &provided);
@@ -90,6 +97,8 @@ Session::Session(int& argc, char**& argv) {
   MPI_Comm_rank(MPI_COMM_WORLD, &g_rank);
   MPI_Comm_size(MPI_COMM_WORLD, &g_size);
   // MPI's default error handler (abort every rank) is kept: a failed collective ends the run.
+  if (const char* f = std::getenv("BACKLIGHT_MPI_FAIL"); f && std::sscanf(f, "%d:%ld", &g_fail_rank, &g_fail_at) != 2)
+    g_fail_rank = -1;
   const char* split = std::getenv("BACKLIGHT_MPI_SPLIT");
   g_blocks = split && std::strcmp(split, "blocks") == 0;
   if (g_rank != 0) {

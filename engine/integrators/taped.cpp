@@ -11,10 +11,10 @@
 #include <cstdio>
 
 #include "engine/core/errors.h"
+#include "engine/core/tape.h"
 #include "engine/dist/dist.h"
 #include "engine/integrators/path.h"
 #include "engine/io/progress.h"
-#include "engine/core/tape.h"
 
 namespace bl {
 

@@ -94,8 +94,8 @@ void Progress::print(uint64_t done, bool final) {
   std::string bar(size_t(filled), '=');
   if (filled < width) bar += '>', bar += std::string(size_t(width - filled - 1), ' ');
   std::fprintf(stderr, "%s%s [%s] %5.1f%% %s%s/s%s %s %s %s%s", tty_ ? "\r" : "", label_.c_str(), bar.c_str(),
-               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), all.c_str(), note_.c_str(), final ? "elapsed" : "ETA",
-               human_seconds(final ? t : eta).c_str(), (final || !tty_) ? "\n" : "\033[K");
+               100.0 * fraction, human_count(rate).c_str(), unit_.c_str(), all.c_str(), note_.c_str(),
+               final ? "elapsed" : "ETA", human_seconds(final ? t : eta).c_str(), (final || !tty_) ? "\n" : "\033[K");
   std::fflush(stderr);
 }
 

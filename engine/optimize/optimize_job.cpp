@@ -1066,9 +1066,12 @@ class Job {
     // Each process of the run (MPI ranks; one on a single process), since this start or resume.
     summary["ranks"] = json::array();
     for (size_t r = 0; r < rss.size(); ++r)
-      summary["ranks"].push_back(
-          {{"rank", r}, {"peak_rss_mb", rss[r] / 1048576.0}, {"mpi_seconds", in_mpi[r]}, {"reduced_mb", bytes[r] / 1048576.0},
-           {"step_seconds", steps[r]}, {"parameter_hash", uint64_t(hashes[r])}});
+      summary["ranks"].push_back({{"rank", r},
+                                  {"peak_rss_mb", rss[r] / 1048576.0},
+                                  {"mpi_seconds", in_mpi[r]},
+                                  {"reduced_mb", bytes[r] / 1048576.0},
+                                  {"step_seconds", steps[r]},
+                                  {"parameter_hash", uint64_t(hashes[r])}});
     if (!validation_.empty()) {
       summary["validation_loss_initial"] = validation_.front().loss;
       summary["validation_loss_final"] = validation_.back().loss;

@@ -6,8 +6,10 @@
 #  - check: the finite-difference column bitwise equal, the adjoint one to float rounding;
 #  - optimize: a few iterations on 2 ranks reach the parameters of one process (to rounding);
 #    only rank 0 writes (no file is written twice);
-#  - failures: bad input gives one line and exit 2; a rank killed mid-run makes mpirun and every
-#    rank exit non-zero within seconds; --resume with a different R finishes the run.
+#  - failures: bad input gives one line and exit 2; a rank failing mid-run prints one line naming
+#    itself and ends every rank; a rank killed mid-run makes mpirun and every rank exit non-zero
+#    within seconds; --resume with a different R finishes the run.
+#  - taped gradients on 2 ranks equal one process's to rounding.
 # Usage: test_mpi.sh BACKLIGHT_BIN MPI_BUILT(ON/OFF)
 set -u
 bin="$1"
@@ -154,6 +156,14 @@ out=$(mpi 2 render missing.json -o x.exr 2>&1)
 code=$?
 [ $code -eq 2 ] || fail "bad input on 2 ranks: exit $code, expected 2 ($out)"
 [ "$out" = "backlight: missing.json: file not found" ] || fail "bad input on 2 ranks printed: $out"
+
+# A rank failing mid-run (fault injection at its 40th collective operation): its one line, and
+# every rank ends, non-zero.
+out=$(mpirun -q --oversubscribe -n 2 -x BACKLIGHT_MPI_FAIL=1:40 "$bin" optimize o1.json --threads 1 --quiet 2>&1)
+code=$?
+[ $code -ne 0 ] || fail "a rank failing mid-run: mpirun exited 0"
+echo "$out" | grep -qx "backlight: rank 1: internal error: injected failure (BACKLIGHT_MPI_FAIL) at collective operation 40" ||
+  fail "a rank failing mid-run printed: $out"
 
 # A rank killed mid-run: every rank exits, non-zero, within seconds.
 job k 200 1000 > k.json
