@@ -15,6 +15,7 @@
 // Without an MPI session (tests, the Python module) everything is one rank.
 #include <cstdint>
 #include <cstdio>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -74,6 +75,12 @@ FILE* error_stream();
 struct PeerFailed {
   int code;
 };
+
+// Runs `step`, which must not call collective operations, on every rank and agrees on its
+// outcome like the first collective does: when it threw on some rank, the lowest such rank
+// rethrows its exception (reported as one line, without an abort) and the others throw
+// PeerFailed. For steps that fail alike on every rank (reading a checkpoint).
+void agreed_step(const std::function<void()>& step);
 
 // A rank's command failed with `code` and `message` (one line): prints and returns the exit
 // code, or aborts every rank (see above). On one rank: prints "backlight: message".

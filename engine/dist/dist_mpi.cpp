@@ -9,8 +9,10 @@
 #include <climits>
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <stdexcept>
 
+#include "engine/core/errors.h"
 #include "engine/core/params.h"
 #include "engine/dist/dist.h"
 #include "engine/io/image_io.h"
@@ -24,6 +26,7 @@ int g_rank = 0, g_size = 1;
 bool g_agreed = false;  // the first collective operation (the error agreement) has happened
 bool g_blocks = false;  // BACKLIGHT_MPI_SPLIT=blocks
 FILE* g_err = nullptr;  // the original stderr of a silenced rank
+bool g_error_agreed = false;  // the error being thrown was agreed on: report it, do not abort
 double g_mpi_seconds = 0, g_reduced_bytes = 0;
 
 // Adds the lifetime of the scope to g_mpi_seconds.
@@ -253,9 +256,9 @@ int fail(int code, const std::string& message) {
     std::fprintf(stderr, "backlight: %s\n", message.c_str());
     return code;
   }
-  if (!g_agreed) {
+  if (!g_agreed || g_error_agreed) {
     try {
-      agree(true, code);
+      agree(true, code);  // no-op when already agreed
     } catch (const PeerFailed& p) {
       return p.code;  // a lower rank failed as well and prints
     }
@@ -272,6 +275,30 @@ int fail(int code, const std::string& message) {
 }
 
 void finish() { collective(); }
+
+void agreed_step(const std::function<void()>& step) {
+  if (g_size == 1) return step();
+  std::exception_ptr error;
+  int code = 0;
+  try {
+    step();
+  } catch (const InputError&) {
+    error = std::current_exception(), code = 2;
+  } catch (const std::filesystem::filesystem_error&) {
+    error = std::current_exception(), code = 2;
+  } catch (const std::exception&) {
+    error = std::current_exception(), code = 1;
+  }
+  collective();
+  const MpiTimer timer;
+  int mine = error ? g_rank : INT_MAX, lowest = INT_MAX;
+  MPI_Allreduce(&mine, &lowest, 1, MPI_INT, MPI_MIN, MPI_COMM_WORLD);
+  if (lowest == INT_MAX) return;
+  MPI_Bcast(&code, 1, MPI_INT, lowest, MPI_COMM_WORLD);
+  if (lowest != g_rank) throw PeerFailed{code};
+  g_error_agreed = true;
+  std::rethrow_exception(error);
+}
 double mpi_seconds() { return g_mpi_seconds; }
 double reduced_bytes() { return g_reduced_bytes; }
 

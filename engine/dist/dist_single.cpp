@@ -26,6 +26,7 @@ int fail(int code, const std::string& message) {
   return code;
 }
 void finish() {}
+void agreed_step(const std::function<void()>& step) { step(); }
 double peak_rss_bytes() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);

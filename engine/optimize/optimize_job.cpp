@@ -508,7 +508,8 @@ class Job {
                    plot_script().c_str(), c_.output.c_str());
     int start = 0;
     if (resume) {
-      start = load_checkpoint();
+      // Every rank reads it; a bad checkpoint is reported once, not by each rank.
+      dist::agreed_step([&] { start = load_checkpoint(); });
     } else {
       apply_initial_values();
     }

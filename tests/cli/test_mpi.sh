@@ -6,7 +6,7 @@
 #  - check: the finite-difference column bitwise equal, the adjoint one to float rounding;
 #  - optimize: a few iterations on 2 ranks reach the parameters of one process (to rounding);
 #    only rank 0 writes (no file is written twice);
-#  - failures: bad input gives one line and exit 2; a rank failing mid-run prints one line naming
+#  - failures: bad input (also a checkpoint that does not fit) gives one line and exit 2; a rank failing mid-run prints one line naming
 #    itself and ends every rank; a rank killed mid-run makes mpirun and every rank exit non-zero
 #    within seconds; --resume with a different R finishes the run.
 #  - taped gradients on 2 ranks equal one process's to rounding.
@@ -156,6 +156,14 @@ out=$(mpi 2 render missing.json -o x.exr 2>&1)
 code=$?
 [ $code -eq 2 ] || fail "bad input on 2 ranks: exit $code, expected 2 ($out)"
 [ "$out" = "backlight: missing.json: file not found" ] || fail "bad input on 2 ranks printed: $out"
+
+# A checkpoint that does not fit the config: read by every rank, reported once.
+sed 's/"bounds": \[0, 1\]}/"bounds": [0, 1], "moments": "bfloat16"}/' o2.json > o2b.json
+out=$(mpi 2 optimize o2b.json --resume o2 --threads 1 --quiet 2>&1)
+code=$?
+[ $code -eq 2 ] || fail "bad checkpoint on 2 ranks: exit $code, expected 2 ($out)"
+[ "$(echo "$out" | wc -l)" -eq 1 ] && echo "$out" | grep -q "^backlight: o2/checkpoint/state.json: checkpoint moments" ||
+  fail "bad checkpoint on 2 ranks printed: $out"
 
 # A rank failing mid-run (fault injection at its 40th collective operation): its one line, and
 # every rank ends, non-zero.
