@@ -23,9 +23,9 @@ namespace {
 
 bool g_session = false;  // MPI initialized by a Session
 int g_rank = 0, g_size = 1;
-bool g_agreed = false;  // the first collective operation (the error agreement) has happened
-bool g_blocks = false;  // BACKLIGHT_MPI_SPLIT=blocks
-FILE* g_err = nullptr;  // the original stderr of a silenced rank
+bool g_agreed = false;        // the first collective operation (the error agreement) has happened
+bool g_blocks = false;        // BACKLIGHT_MPI_SPLIT=blocks
+FILE* g_err = nullptr;        // the original stderr of a silenced rank
 bool g_error_agreed = false;  // the error being thrown was agreed on: report it, do not abort
 double g_mpi_seconds = 0, g_reduced_bytes = 0;
 
