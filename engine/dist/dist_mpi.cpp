@@ -96,6 +96,10 @@ Session::Session(int& argc, char**& argv) {
   if (!launched) return;
   int provided = 0;
   MPI_Init_thread(&argc, &argv, MPI_THREAD_FUNNELED, &provided);
+  if (provided < MPI_THREAD_FUNNELED) {
+    std::fprintf(stderr, "backlight: this MPI library does not allow threads (MPI_THREAD_FUNNELED)\n");
+    MPI_Abort(MPI_COMM_WORLD, 1);
+  }
   g_session = true;
   MPI_Comm_rank(MPI_COMM_WORLD, &g_rank);
   MPI_Comm_size(MPI_COMM_WORLD, &g_size);

@@ -511,7 +511,7 @@ class Job {
       // Every rank reads it; a bad checkpoint is reported once, not by each rank.
       dist::agreed_step([&] { start = load_checkpoint(); });
     } else {
-      apply_initial_values();
+      dist::agreed_step([&] { apply_initial_values(); });  // a bad "init" fails alike on every rank
     }
     snapshot_initial();
     return optimize(start);
@@ -694,7 +694,9 @@ class Job {
       Image first_view;
       bool stop = false;
       for (int k = 0; k < per_iteration; ++k) {
-        // Ctrl-C (mpirun forwards it to every rank): all ranks stop at the same view.
+        // Ctrl-C: all ranks stop at the same view when each gets SIGINT. (Under mpirun a Ctrl-C
+        // becomes SIGTERM then SIGKILL for the ranks: they end without this checkpoint, and
+        // --resume starts from the last periodic one.)
         if ((stop = dist::any(interrupted != 0))) break;
         const int v = order[size_t(k)];
         GradientRequest rq;

@@ -157,6 +157,13 @@ code=$?
 [ $code -eq 2 ] || fail "bad input on 2 ranks: exit $code, expected 2 ($out)"
 [ "$out" = "backlight: missing.json: file not found" ] || fail "bad input on 2 ranks printed: $out"
 
+# A bad "init" (applied by every rank after the first collective): one line, exit 2.
+sed 's/"bounds": \[0, 1\]}/"bounds": [0, 1], "init": "missing.exr"}/' o2.json | sed 's/"output": "o2"/"output": "o3"/' > o3.json
+out=$(mpi 2 optimize o3.json --threads 1 --quiet 2>&1)
+code=$?
+[ $code -eq 2 ] && [ "$(echo "$out" | wc -l)" -eq 1 ] && echo "$out" | grep -q "missing.exr" ||
+  fail "bad init on 2 ranks: exit $code, printed: $out"
+
 # A checkpoint that does not fit the config: read by every rank, reported once.
 sed 's/"bounds": \[0, 1\]}/"bounds": [0, 1], "moments": "bfloat16"}/' o2.json > o2b.json
 out=$(mpi 2 optimize o2b.json --resume o2 --threads 1 --quiet 2>&1)
