@@ -912,7 +912,8 @@ class Job {
   void plot() {
     if (!root_) return;
     if (!matplotlib_) return;
-    if (run_python({plot_script(), c_.output}) == 0) return;
+    // --parent: the plot dies with this process (a killed run leaves no plot writing on).
+    if (run_python({plot_script(), "--parent", std::to_string(getpid()), c_.output}) == 0) return;
     matplotlib_ = false;
     std::fprintf(stderr, "optimize: plotting with matplotlib failed; drawing simple plots instead (run %s %s)\n",
                  plot_script().c_str(), c_.output.c_str());
