@@ -59,13 +59,10 @@ void complete_image(Image& image);
 void reduce_gradients(ParamStore& params);
 
 // Small collectives.
-double sum(double v);
 uint64_t sum(uint64_t v);
-double max(double v);
 bool any(bool v);
 bool root_value(bool v);               // rank 0's value, on every rank
 std::vector<double> gather(double v);  // rank 0: one value per rank; others: empty
-void barrier();
 
 // The stream for error lines: stderr, also on ranks whose stderr is silenced.
 FILE* error_stream();

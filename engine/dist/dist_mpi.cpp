@@ -198,38 +198,18 @@ void reduce_gradients(ParamStore& params) {
   }
 }
 
-double sum(double v) {
+// One value reduced over all ranks with `op`.
+template <class T>
+T all_reduce(T v, MPI_Datatype type, MPI_Op op) {
   if (g_size == 1) return v;
   collective();
   const MpiTimer timer;
-  double out = 0;
-  MPI_Allreduce(&v, &out, 1, MPI_DOUBLE, MPI_SUM, MPI_COMM_WORLD);
+  T out{};
+  MPI_Allreduce(&v, &out, 1, type, op, MPI_COMM_WORLD);
   return out;
 }
-uint64_t sum(uint64_t v) {
-  if (g_size == 1) return v;
-  collective();
-  const MpiTimer timer;
-  uint64_t out = 0;
-  MPI_Allreduce(&v, &out, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD);
-  return out;
-}
-double max(double v) {
-  if (g_size == 1) return v;
-  collective();
-  const MpiTimer timer;
-  double out = 0;
-  MPI_Allreduce(&v, &out, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD);
-  return out;
-}
-bool any(bool v) {
-  if (g_size == 1) return v;
-  collective();
-  const MpiTimer timer;
-  int in = v ? 1 : 0, out = 0;
-  MPI_Allreduce(&in, &out, 1, MPI_INT, MPI_MAX, MPI_COMM_WORLD);
-  return out != 0;
-}
+uint64_t sum(uint64_t v) { return all_reduce(v, MPI_UINT64_T, MPI_SUM); }
+bool any(bool v) { return all_reduce(int(v), MPI_INT, MPI_MAX) != 0; }
 bool root_value(bool v) {
   if (g_size == 1) return v;
   collective();
@@ -245,12 +225,6 @@ std::vector<double> gather(double v) {
   std::vector<double> all(g_rank == 0 ? size_t(g_size) : 0);
   MPI_Gather(&v, 1, MPI_DOUBLE, all.data(), 1, MPI_DOUBLE, 0, MPI_COMM_WORLD);
   return all;
-}
-void barrier() {
-  if (g_size == 1) return;
-  collective();
-  const MpiTimer timer;
-  MPI_Barrier(MPI_COMM_WORLD);
 }
 
 FILE* error_stream() { return g_err ? g_err : stderr; }

@@ -13,13 +13,10 @@ int size() { return 1; }
 bool owns_tile(int, int) { return true; }
 void complete_image(Image&) {}
 void reduce_gradients(ParamStore&) {}
-double sum(double v) { return v; }
 uint64_t sum(uint64_t v) { return v; }
-double max(double v) { return v; }
 bool any(bool v) { return v; }
 bool root_value(bool v) { return v; }
 std::vector<double> gather(double v) { return {v}; }
-void barrier() {}
 FILE* error_stream() { return stderr; }
 int fail(int code, const std::string& message) {
   std::fprintf(stderr, "backlight: %s\n", message.c_str());
