@@ -23,7 +23,9 @@ namespace {
 //  - BSDF sample at a vertex: every later contribution carries the factor f/pdf, so
 //    ∂(rest)/∂f = rest / f with rest = L − (radiance so far) (the "radiance to come").
 // Sampling decisions (directions, pdfs, MIS weights, roulette) are constants, matching the
-// detached convention of the primal loop.
+// detached convention of the primal loop. A vertex colour multiplies the colour texture a BSDF
+// reads, so that texture receives the BSDF's colour gradient times the colour (the tint the
+// vertex record carries to Material::texture_backprop).
 // Media (differential delta and ratio tracking, Nimier-David et al. 2022), with rest = L − radiance
 // so far:
 //  - a tentative collision of delta tracking multiplies everything after it by σ_t/σ_t (real) or
@@ -67,7 +69,8 @@ struct ReplayObserver {
   }
   // Must be called once the path is done.
   void flush() {
-    if (pending) pending_ref.material->texture_backprop(scene.params, pending_ref.uv, pending_gradient, grads);
+    if (pending)
+      pending_ref.material->texture_backprop(scene.params, pending_ref.uv, pending_gradient, grads, pending_ref.tint);
     pending = nullptr;
   }
 

@@ -34,7 +34,8 @@ struct VertexRef {
   const Material* material = nullptr;
   const BsdfValue<float>* value = nullptr;  // the material's textures evaluated at uv (detached)
   Vec2f uv;
-  Vec3f wo;  // local shading frame
+  Vec3f tint;  // the vertex colour the material's colour was multiplied by (white: none)
+  Vec3f wo;    // local shading frame
   int vertex = 0;
 };
 
@@ -409,13 +410,13 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     // Max depth: a further segment would exceed it.
     if (st.max_depth >= 0 && vertex >= st.max_depth) break;
 
-    const BsdfValue<T> bsdf = material.at<T>(params, sp.uv);
+    const BsdfValue<T> bsdf = material.at<T>(params, sp.uv, sp.color);
     const BsdfValue<float> bsdf_detached = bsdf.detached();
     Vec3f normal = sp.shading_normal;
     if (material.two_sided && dot(normal, wo_world) < 0.f) normal = -normal;
     const Frame frame(normal);
     const Vec3f wo = frame.to_local(wo_world);
-    const VertexRef vref{&material, &bsdf_detached, sp.uv, wo, vertex};
+    const VertexRef vref{&material, &bsdf_detached, sp.uv, sp.color, wo, vertex};
 
     // Next-event estimation: one emitter chosen uniformly, one point on it.
     if (has_emitters && observer.nee_may_contribute(vertex)) {

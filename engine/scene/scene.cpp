@@ -113,6 +113,7 @@ SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {
   } else {
     sp.uv = {hit.b1, hit.b2};
   }
+  if (!m.colors.empty()) sp.color = m.colors[i0] * b0 + m.colors[i1] * hit.b1 + m.colors[i2] * hit.b2;
   return sp;
 }
 

@@ -5,9 +5,9 @@
 #include <string>
 #include <vector>
 
+#include "engine/core/params.h"
 #include "engine/scene/camera.h"
 #include "engine/scene/geometry.h"
-#include "engine/core/params.h"
 #include "kernels/bsdf/material.h"
 #include "kernels/emitter/area.h"
 #include "kernels/emitter/envmap.h"
@@ -22,6 +22,8 @@ struct Mesh {
   std::vector<Vec3f> positions;
   std::vector<Vec3f> normals;  // per vertex, or empty (flat shading)
   std::vector<Vec2f> uvs;      // per vertex, or empty (uv = barycentrics)
+  // Per vertex linear RGB in [0, 1] multiplying the material's colour (glTF's COLOR_0), or empty.
+  std::vector<Vec3f> colors;
   std::vector<uint32_t> indices;
   std::vector<Vec3f> face_normals;  // unit (p1 − p0) × (p2 − p0) per triangle, built by Scene::prepare
   int material = -1;
@@ -49,6 +51,7 @@ struct SurfacePoint {
   Vec3f geometric_normal;  // unit, from the winding (p1 − p0) × (p2 − p0)
   Vec3f shading_normal;    // unit, interpolated vertex normal (or the geometric one)
   Vec2f uv;
+  Vec3f color{1.f};  // interpolated vertex colour; white when the mesh has none
   int mesh = -1;
 };
 

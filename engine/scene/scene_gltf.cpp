@@ -1,5 +1,5 @@
-// glTF 2.0 (.gltf/.glb) loading through tinygltf: meshes with node transforms, cameras,
-// metallic-roughness materials and emissive materials as area lights.
+// glTF 2.0 (.gltf/.glb) loading through tinygltf: meshes with node transforms and vertex
+// colours, cameras, metallic-roughness materials and emissive materials as area lights.
 #include <tiny_gltf.h>
 
 #include <nlohmann/json.hpp>
@@ -367,6 +367,33 @@ void apply_texture_transform(const tinygltf::Model& model, int material, std::ve
   }
 }
 
+// COLOR_0 as linear RGB per vertex (alpha dropped): VEC3 or VEC4 of floats or of normalized
+// unsigned bytes/shorts, the types the specification allows. Empty when every colour is white,
+// so such a mesh costs and renders exactly like one without colours.
+std::vector<Vec3f> read_vertex_colors(const tinygltf::Model& model, int index, const std::string& mesh,
+                                      const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
+  const auto& acc = model.accessors[size_t(index)];
+  const std::string what = "mesh '" + mesh.substr(0, 100) + "': COLOR_0 (accessor " + std::to_string(index) + ")";
+  const int components = acc.type == TINYGLTF_TYPE_VEC3 ? 3 : acc.type == TINYGLTF_TYPE_VEC4 ? 4 : 0;
+  const bool normalized_unsigned = acc.normalized && (acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                                                      acc.componentType == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT);
+  if (!components || (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT && !normalized_unsigned))
+    throw file_error(path, what + ": expected VEC3 or VEC4 of floats or normalized unsigned bytes or shorts");
+  const std::vector<float> v = read_floats(model, index, components, path);
+  std::vector<Vec3f> colors;
+  bool white = true;
+  for (size_t i = 0; i + size_t(components) <= v.size(); i += size_t(components)) {
+    const Vec3f c(v[i], v[i + 1], v[i + 2]);
+    for (int k = 0; k < 3; ++k)
+      if (!(c[k] >= 0.f && c[k] <= 1.f)) throw file_error(path, what + ": colour values must be in [0, 1]");
+    white = white && c.x == 1.f && c.y == 1.f && c.z == 1.f;
+    colors.push_back(c);
+  }
+  if (white) colors.clear();
+  return colors;
+}
+
 struct Primitive {
   Mesh mesh;  // world space, unpadded
   int material = -1;
@@ -378,8 +405,12 @@ uint64_t accessor_count(const tinygltf::Model& model, int index) {
   return index >= 0 && size_t(index) < model.accessors.size() ? uint64_t(model.accessors[size_t(index)].count) : 0;
 }
 
+// Every triangle primitive of the default scene in world space; vertex colours (COLOR_0) only
+// when `vertex_colors` (they belong to the file's materials, which a JSON scene's glTF shape
+// does not use).
 std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const std::string& path,
-                                          const Transform& to_world, std::vector<std::pair<Transform, int>>* cameras) {
+                                          const Transform& to_world, std::vector<std::pair<Transform, int>>* cameras,
+                                          bool vertex_colors) {
   std::vector<Primitive> out;
   // Totals over every instance, counted in a first pass that reads nothing: one mesh under
   // thousands of nodes, or one accessor in thousands of primitives, costs its size every time.
@@ -427,13 +458,16 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
           apply_texture_transform(model, prim.material, uv, path);
           for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
         }
+        if (auto it = prim.attributes.find("COLOR_0"); vertex_colors && it != prim.attributes.end())
+          p.mesh.colors = read_vertex_colors(model, it->second, gm.name, path);
         if (prim.indices >= 0) {
           p.mesh.indices = read_indices(model, prim.indices, path);
         } else {
           for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) p.mesh.indices.push_back(i);
         }
         if ((!p.mesh.normals.empty() && p.mesh.normals.size() != p.mesh.positions.size()) ||
-            (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()))
+            (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()) ||
+            (!p.mesh.colors.empty() && p.mesh.colors.size() != p.mesh.positions.size()))
           throw file_error(path, "attribute counts disagree in mesh '" + gm.name + "'");
         for (uint32_t i : p.mesh.indices)
           if (i >= p.mesh.positions.size())
@@ -547,7 +581,7 @@ std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
 std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world) {
   tinygltf::Model model = read_model(path);
   std::vector<Mesh> meshes;
-  for (auto& p : collect_primitives(model, path, to_world, nullptr)) meshes.push_back(std::move(p.mesh));
+  for (auto& p : collect_primitives(model, path, to_world, nullptr, false)) meshes.push_back(std::move(p.mesh));
   return meshes;
 }
 
@@ -556,7 +590,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
   auto scene = std::make_unique<Scene>();
   scene->source = path;
   std::vector<std::pair<Transform, int>> cameras;
-  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras);
+  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras, true);
   if (prims.empty()) throw file_error(path, "no triangle meshes in the default scene");
   // Each material used gets its own copy of its base colour texture (3 floats per texel): many
   // materials naming one small, highly compressed image must not add up past the limit, so the
@@ -642,18 +676,25 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     if (pbr.baseColorFactor.size() < 3)
       throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
     std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
-    const bool metal = pbr.metallicFactor >= 0.5;
-    m.type = metal ? BsdfType::RoughConductor : BsdfType::RoughPlastic;
+    // Metallic 0 and 1 are the pure lobes (and keep their parameter names); anything between is
+    // the specification's blend of the two.
+    m.type = pbr.metallicFactor == 0.0   ? BsdfType::RoughPlastic
+             : pbr.metallicFactor == 1.0 ? BsdfType::RoughConductor
+                                         : BsdfType::MetallicRoughness;
     float alpha = float(pbr.roughnessFactor * pbr.roughnessFactor);
     m.roughness = add_param(m.name + ".roughness", {1}, {alpha}, 0.f, 4.f);
+    if (m.type == BsdfType::MetallicRoughness)
+      m.metallic = add_param(m.name + ".metallic", {1}, {float(pbr.metallicFactor)}, 0.f, 1.f);
     TextureSlot color;
-    const std::string key = metal ? ".specular" : ".albedo";
+    const std::string key = m.type == BsdfType::RoughConductor ? ".specular"
+                            : m.type == BsdfType::RoughPlastic ? ".albedo"
+                                                               : ".base_color";
     if (pbr.baseColorTexture.index >= 0) {
       color = texture_param(pbr.baseColorTexture.index, base, 1.f, m.name + key, "base colour texture");
     } else {
       color = add_param(m.name + key, {3}, base, 0.f, 1.f);
     }
-    (metal ? m.specular : m.albedo) = color;
+    (m.type == BsdfType::RoughConductor ? m.specular : m.albedo) = color;
     scene->materials.push_back(std::move(m));
     return material_of[gi] = int(scene->materials.size() - 1);
   };

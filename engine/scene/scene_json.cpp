@@ -281,9 +281,14 @@ struct Loader {
       m.albedo = tex("albedo", false, 0.f, 1.f);
       m.roughness = tex("roughness", true, 0.f, 4.f);
       m.ior = float(n.number("ior", 1.5, 1.0001, 4.0));
+    } else if (type == "metallic_roughness") {
+      m.type = BsdfType::MetallicRoughness;
+      m.albedo = tex("base_color", false, 0.f, 1.f);
+      m.roughness = tex("roughness", true, 0.f, 4.f);
+      m.metallic = tex("metallic", true, 0.f, 1.f);
     } else {
-      n.fail_at("type",
-                "unknown material type '" + type + "' (expected diffuse, roughconductor, roughplastic or null)");
+      n.fail_at("type", "unknown material type '" + type +
+                            "' (expected diffuse, roughconductor, roughplastic, metallic_roughness or null)");
     }
     n.finish();
     scene.materials.push_back(std::move(m));

@@ -20,7 +20,9 @@ std::unique_ptr<Scene> load_xml_scene(const std::string& path);
 std::unique_ptr<Scene> build_json_scene(const nlohmann::json& root, const std::string& path);
 
 // Triangle meshes of every primitive of a glTF file's default scene, node transforms applied,
-// then `to_world`. Used by the `gltf` shape type.
+// then `to_world`. Used by the `gltf` shape type, which takes its material from the JSON scene:
+// the file's materials and vertex colours (COLOR_0, part of a glTF material's base colour) are
+// not read.
 std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world);
 
 // Finishes a mesh built in object space: transforms to world, fixes winding for mirroring

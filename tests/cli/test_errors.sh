@@ -130,6 +130,12 @@ expect_error negative_albedo_json "/materials/red/albedo" "red.albedo" "negative
   render "$(v negalb 's["materials"]["red"]["albedo"] = [0.5, -0.1, 1]')" -o o.exr
 expect_error albedo_above_one "red.albedo" "valid range" -- \
   render "$(v bigalb 's["materials"]["red"]["albedo"] = [0.5, 1.5, 1]')" -o o.exr
+expect_error metallic_unknown_key "/materials/red" "unknown key 'ior'" -- \
+  render "$(v mrior 's["materials"]["red"] = {"type": "metallic_roughness", "base_color": 0.5, "roughness": 0.3, "metallic": 0.5, "ior": 1.4}')" -o o.exr
+expect_error metallic_above_one "red.metallic" "valid range" -- \
+  render "$(v mrbig 's["materials"]["red"] = {"type": "metallic_roughness", "base_color": 0.5, "roughness": 0.3, "metallic": 1.5}')" -o o.exr
+expect_error metallic_missing "/materials/red" "missing required key 'metallic'" -- \
+  render "$(v mrmiss 's["materials"]["red"] = {"type": "metallic_roughness", "base_color": 0.5, "roughness": 0.3}')" -o o.exr
 # JSON cannot spell NaN; 1e39 overflows float (→ inf) and 1e999 overflows double (nlohmann
 # rejects it while parsing: out_of_range.406 "number overflow").
 sed 's/"radiance": \[17, 12, 4\]/"radiance": [1e39, 12, 4]/' "$cornell" >small/inf_radiance.json
@@ -201,6 +207,8 @@ expect_error gltf_camera_index "camidx.gltf" "camera" -- \
   render "$(gv camidx 's["nodes"][5]["camera"] = 42')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_zero_fov "yfov0.gltf" "re:fov|yfov" -- \
   render "$(gv yfov0 's["cameras"][0]["perspective"]["yfov"] = 0')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_color_type "color.gltf" "COLOR_0 (accessor 6): expected VEC3 or VEC4" -- \
+  render "$(gv color 's["meshes"][1]["primitives"][0]["attributes"]["COLOR_0"] = 6')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_shape_in_json "garbage.gltf" "invalid glTF" -- \
   render "$(v gshape 's["shapes"][0] = {"name": "g", "type": "gltf", "file": "../garbage.gltf", "material": "white"}')" \
     -o o.exr --resolution 8x8 --spp 1

@@ -1,9 +1,14 @@
 // glTF loading details a user meets on real files: the default camera (a file without one) keeps
-// the whole model in view at any film aspect, and a file that requires an extension backlight
-// does not implement is refused by the extension's name.
+// the whole model in view at any film aspect, a file that requires an extension backlight does
+// not implement is refused by the extension's name, metallic factors between 0 and 1 blend the
+// two lobes, and vertex colours (COLOR_0) multiply the base colour, gradients included.
 #include <unistd.h>
 #include <catch2/catch.hpp>
 
+#include <nlohmann/json.hpp>
+
+#include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -11,6 +16,7 @@
 #include <vector>
 
 #include "engine/core/errors.h"
+#include "engine/integrators/gradient.h"
 #include "engine/integrators/render.h"
 #include "engine/io/image_io.h"
 #include "engine/scene/scene_load.h"
@@ -342,4 +348,220 @@ TEST_CASE("quantized attributes (KHR_mesh_quantization) and normalized integer u
   REQUIRE(m.uvs.size() == 8);
   CHECK(m.uvs[2].x == 1.f);
   CHECK(m.uvs[1].y == 0.f);
+}
+
+TEST_CASE("metallicFactor strictly between 0 and 1 becomes the metallic-roughness blend", "[gltf][material]") {
+  TempDir tmp;
+  struct Case {
+    const char* factor;
+    BsdfType type;
+    const char* colour;  // the base colour's parameter
+  };
+  for (const Case& c :
+       {Case{"0", BsdfType::RoughPlastic, "grey.albedo"}, Case{"1", BsdfType::RoughConductor, "grey.specular"},
+        Case{"0.4", BsdfType::MetallicRoughness, "grey.base_color"}}) {
+    CAPTURE(c.factor);
+    const std::string name = std::string("metallic_") + c.factor + ".gltf";
+    auto scene = load_scene(replace_in_file(write_cube(tmp, name), R"("metallicFactor": 0,)",
+                                            std::string(R"("metallicFactor": )") + c.factor + ","));
+    REQUIRE(scene->materials.size() == 1);
+    const Material& m = scene->materials[0];
+    CHECK(m.type == c.type);
+    const int colour = scene->params.find(c.colour);
+    REQUIRE(colour >= 0);
+    CHECK(scene->params[colour].value == std::vector<float>{0.5f, 0.5f, 0.5f});
+    CHECK(scene->params.find("grey.roughness") >= 0);
+    const int metallic = scene->params.find("grey.metallic");
+    if (c.type == BsdfType::MetallicRoughness) {
+      REQUIRE(metallic >= 0);
+      CHECK(m.metallic.param == metallic);
+      CHECK(scene->params[metallic].value == std::vector<float>{0.4f});
+      CHECK(scene->params[metallic].lower == 0.f);
+      CHECK(scene->params[metallic].upper == 1.f);
+    } else {
+      CHECK(metallic < 0);  // the pure lobes keep their parameters
+    }
+  }
+}
+
+namespace {
+// A 2 × 2 quad facing +z with per-vertex colours: bottom-left red, bottom-right green, top-right
+// blue, top-left red. `colours` is "float3" (VEC3 floats), "ubyte4" (VEC4 normalized unsigned
+// bytes, alpha 255), "half" (VEC3 floats, all 0.5), "byte_raw" (VEC4 unsigned bytes without
+// `normalized`, which the specification forbids) or "" (no COLOR_0).
+std::string write_coloured_quad(const TempDir& tmp, const std::string& name, const std::string& colours,
+                                double metallic = 0.0) {
+  using nlohmann::json;
+  const float pos[4][3] = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  const float rgb[4][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}, {1, 0, 0}};
+  const float half[4][3] = {{0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}};
+  const uint8_t rgba[4][4] = {{255, 0, 0, 255}, {0, 255, 0, 255}, {0, 0, 255, 255}, {255, 0, 0, 255}};
+  const uint16_t idx[6] = {0, 1, 2, 0, 2, 3};
+  const bool bytes = colours == "ubyte4" || colours == "byte_raw";
+  const size_t colour_bytes = colours.empty() ? 0 : bytes ? sizeof rgba : sizeof rgb;
+  // Buffer: positions (0..48), colours (48..), indices.
+  std::ofstream bin(tmp(name + ".bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(pos), sizeof pos);
+  if (bytes)
+    bin.write(reinterpret_cast<const char*>(rgba), sizeof rgba);
+  else if (!colours.empty())
+    bin.write(reinterpret_cast<const char*>(colours == "half" ? half : rgb), sizeof rgb);
+  bin.write(reinterpret_cast<const char*>(idx), sizeof idx);
+  bin.close();
+  const size_t index_offset = 48 + colour_bytes;
+  json views = {{{"buffer", 0}, {"byteOffset", 0}, {"byteLength", 48}},
+                {{"buffer", 0}, {"byteOffset", index_offset}, {"byteLength", sizeof idx}}};
+  json accessors = {{{"bufferView", 0},
+                     {"componentType", 5126},
+                     {"count", 4},
+                     {"type", "VEC3"},
+                     {"min", {-1, -1, 0}},
+                     {"max", {1, 1, 0}}},
+                    {{"bufferView", 1}, {"componentType", 5123}, {"count", 6}, {"type", "SCALAR"}}};
+  json attributes = {{"POSITION", 0}};
+  if (!colours.empty()) {
+    views.push_back({{"buffer", 0}, {"byteOffset", 48}, {"byteLength", colour_bytes}});
+    json colour = {
+        {"bufferView", 2}, {"componentType", bytes ? 5121 : 5126}, {"count", 4}, {"type", bytes ? "VEC4" : "VEC3"}};
+    if (colours == "ubyte4") colour["normalized"] = true;
+    accessors.push_back(colour);
+    attributes["COLOR_0"] = 2;
+  }
+  const json gltf = {
+      {"asset", {{"version", "2.0"}}},
+      {"scene", 0},
+      {"scenes", {{{"nodes", {0}}}}},
+      {"nodes", {{{"mesh", 0}}}},
+      {"meshes", {{{"name", "quad"}, {"primitives", {{{"attributes", attributes}, {"indices", 1}, {"material", 0}}}}}}},
+      {"materials",
+       {{{"name", "paint"},
+         {"pbrMetallicRoughness",
+          {{"baseColorFactor", {1, 1, 1, 1}}, {"metallicFactor", metallic}, {"roughnessFactor", 0.8}}}}}},
+      {"buffers", {{{"uri", name + ".bin"}, {"byteLength", index_offset + sizeof idx}}}},
+      {"bufferViews", views},
+      {"accessors", accessors}};
+  std::ofstream(tmp(name)) << gltf.dump();
+  return tmp(name);
+}
+
+// The quad on a small film, zoomed in (the default camera frames its bounding sphere) so that every
+// pixel sees the quad and none the sky.
+std::unique_ptr<Scene> load_small(const std::string& path, int size = 32) {
+  auto scene = load_scene(path);
+  Camera& cam = scene->cameras[0];
+  cam.width = size, cam.height = size;
+  cam.fov_degrees = 20.f;
+  cam.update();
+  return scene;
+}
+
+const float* pixel(const Image& img, int x, int y) {
+  return &img.data[(size_t(y) * size_t(img.width) + size_t(x)) * 3];
+}
+}  // namespace
+
+TEST_CASE("COLOR_0 multiplies the base colour (float and normalized byte colours)", "[gltf][vertex_colors]") {
+  TempDir tmp;
+  // Pixels near the bottom-left, bottom-right and top-right corners of the 32 × 32 film.
+  const int left = 2, right = 29, top = 2, bottom = 29;
+  Image images[2];
+  int k = 0;
+  for (const char* colours : {"float3", "ubyte4"}) {
+    CAPTURE(colours);
+    auto scene = load_small(write_coloured_quad(tmp, std::string(colours) + ".gltf", colours));
+    REQUIRE(scene->meshes[0].colors.size() == 4);
+    const Image img = render(*scene, {0, 16, 1, false});
+    const float *red = pixel(img, left, bottom), *green = pixel(img, right, bottom), *blue = pixel(img, right, top);
+    INFO("red corner " << red[0] << " " << red[1] << " " << red[2] << ", green corner " << green[0] << " " << green[1]
+                       << " " << green[2] << ", blue corner " << blue[0] << " " << blue[1] << " " << blue[2]);
+    std::printf(
+        "COLOR_0 %s: red corner (%.3f, %.3f, %.3f), green corner (%.3f, %.3f, %.3f), blue corner (%.3f, "
+        "%.3f, %.3f)\n",
+        colours, red[0], red[1], red[2], green[0], green[1], green[2], blue[0], blue[1], blue[2]);
+    CHECK(red[0] > 3 * red[1]);
+    CHECK(red[0] > 3 * red[2]);
+    CHECK(green[1] > 3 * green[0]);
+    CHECK(green[1] > 3 * green[2]);
+    CHECK(blue[2] > 3 * blue[0]);
+    CHECK(blue[2] > 3 * blue[1]);
+    images[k++] = img;
+  }
+  // 255/255 and 0/255 decode to exactly 1 and 0: both files render the same image.
+  CHECK(images[0].data == images[1].data);
+  // Negative control: without COLOR_0 the same quad is grey.
+  const Image plain = render(*load_small(write_coloured_quad(tmp, "plain.gltf", "")), {0, 16, 1, false});
+  const float* p = pixel(plain, left, bottom);
+  std::printf("no COLOR_0: bottom-left (%.3f, %.3f, %.3f)\n", p[0], p[1], p[2]);
+  CHECK(p[0] == Approx(p[1]).epsilon(0.05));
+  CHECK(p[0] == Approx(p[2]).epsilon(0.05));
+  // COLOR_0 is a property of the file's materials: a JSON scene's `gltf` shape does not read it.
+  CHECK(load_gltf_meshes(tmp("float3.gltf"), Transform())[0].colors.empty());
+  // The specification allows floats and normalized unsigned integers only.
+  CHECK_THROWS_WITH(load_scene(write_coloured_quad(tmp, "raw.gltf", "byte_raw")),
+                    Catch::Contains("COLOR_0 (accessor 2): expected VEC3 or VEC4 of floats or normalized unsigned"));
+}
+
+TEST_CASE("a uniform COLOR_0 of 0.5 halves a diffuse, directly lit image", "[gltf][vertex_colors]") {
+  TempDir tmp;
+  auto render_diffuse = [&](const std::string& colours) {
+    auto scene = load_small(write_coloured_quad(tmp, "d_" + colours + ".gltf", colours));
+    // Diffuse only (glTF's dielectric has a white coat that no colour scales), lit by the sky
+    // directly: the image is linear in the albedo.
+    scene->materials[0].type = BsdfType::Diffuse;
+    scene->settings.max_depth = 2;
+    return render(*scene, {0, 8, 3, false});
+  };
+  const Image plain = render_diffuse(""), half = render_diffuse("half");
+  double worst = 0.0;
+  for (size_t i = 0; i < plain.data.size(); ++i) {
+    REQUIRE(plain.data[i] > 0.f);  // every pixel sees the lit quad (a sky sample would not halve)
+    worst = std::max(worst, std::abs(double(half.data[i]) - 0.5 * double(plain.data[i])) / (0.5 * plain.data[i]));
+  }
+  INFO("worst relative deviation from half " << worst);
+  std::printf("uniform COLOR_0 0.5: worst relative deviation from half %.3g over %zu pixel channels\n", worst,
+              plain.data.size());
+  CHECK(worst <= 1e-6);
+}
+
+TEST_CASE("glTF vertex colours and the metallic blend: prb matches taped AD and same-seed differences",
+          "[gltf][vertex_colors][gradient]") {
+  TempDir tmp;
+  auto scene = load_small(write_coloured_quad(tmp, "grad.gltf", "float3", 0.4), 16);
+  REQUIRE(scene->materials[0].type == BsdfType::MetallicRoughness);
+  scene->settings.rr_depth = 0;  // roulette reads the throughput, which the base colour changes
+  // A linear functional of the image with varying weights; its gradient is the adjoint image.
+  Image a(16, 16, 3);
+  for (size_t i = 0; i < a.data.size(); ++i) a.data[i] = 1e-3f * float(1 + (i * 7919) % 13);
+  GradientRequest rq;
+  rq.adjoint_image = &a;
+  rq.pass = {0, 8, 5, false};
+  rq.adjoint_seed = 5;
+  const std::vector<std::string> names{"paint.base_color", "paint.roughness", "paint.metallic"};
+  scene->params.require_grad(names);
+  rq.method = GradientMethod::Prb;
+  compute_gradient(*scene, rq);
+  std::vector<std::vector<float>> prb;
+  for (const auto& n : names) prb.push_back(scene->params[scene->params.find(n)].grad);
+  rq.method = GradientMethod::Taped;
+  compute_gradient(*scene, rq);
+  for (size_t i = 0; i < names.size(); ++i) {
+    const std::vector<float>& taped = scene->params[scene->params.find(names[i])].grad;
+    double diff = 0, norm = 0;
+    for (size_t k = 0; k < taped.size(); ++k)
+      diff += double(taped[k] - prb[i][k]) * (taped[k] - prb[i][k]), norm += double(prb[i][k]) * prb[i][k];
+    INFO(names[i] << ": |prb| = " << std::sqrt(norm) << ", |taped - prb| = " << std::sqrt(diff));
+    std::printf("glTF quad, %s: |prb| = %.6g, |taped - prb| / |prb| = %.3g\n", names[i].c_str(), std::sqrt(norm),
+                std::sqrt(diff / norm));
+    CHECK(norm > 0);
+    CHECK(std::sqrt(diff) <= 1e-4 * std::sqrt(norm));
+  }
+  // The base colour does not move sampling: same-seed differences of the whole image.
+  rq.method = GradientMethod::Prb;
+  for (const auto& row : directional_check(*scene, "paint.base_color", rq, 3, 1e-2, 3)) {
+    INFO("adjoint " << row.adjoint << " finite difference " << row.finite_difference);
+    std::printf("glTF quad, paint.base_color: adjoint %.6g, finite difference %.6g, relative error %.2g\n", row.adjoint,
+                row.finite_difference, row.relative_error);
+    CHECK(row.relative_error < 1e-3);
+    CHECK(std::abs(row.finite_difference) > 0);
+  }
 }

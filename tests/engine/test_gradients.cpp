@@ -1,10 +1,13 @@
 // Whole-image gradient tests: adjoint vs same-seed central differences of the primal renderer
 // (through the code `backlight check` runs), prb vs the taped oracle, rb vs prb in expectation,
-// exactness for emitter radiance, and gradient shape (zeros where unseen, signs).
+// exactness for emitter radiance, and gradient shape (zeros where unseen, signs); the same for the
+// metallic-roughness blend and for meshes with vertex colours.
 #include <tbb/global_control.h>
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstdio>
+#include <fstream>
 #include <numeric>
 
 #include "engine/integrators/gradient.h"
@@ -48,6 +51,86 @@ double norm(const std::vector<float>& v) {
   return std::sqrt(s);
 }
 
+// prb against the taped oracle on the same random numbers, for every parameter of the scene.
+void check_prb_matches_taped(Scene& scene, const Image& target) {
+  scene.params.require_grad({});
+  compute_gradient(scene, request(target, GradientMethod::Prb, 4));
+  std::vector<std::vector<float>> prb;
+  for (auto& p : scene.params.all()) prb.push_back(p.grad);
+  GradientResult taped = compute_gradient(scene, request(target, GradientMethod::Taped, 4));
+  CHECK(taped.tape_entries > 0);
+  for (size_t i = 0; i < prb.size(); ++i) {
+    const Param& p = scene.params.all()[i];
+    std::vector<float> diff(p.grad.size());
+    for (size_t k = 0; k < diff.size(); ++k) diff[k] = p.grad[k] - prb[i][k];
+    INFO(p.name << ": |prb| = " << norm(prb[i]) << ", |taped - prb| = " << norm(diff));
+    std::printf("prb vs taped, %s: |prb| = %.6g, |taped - prb| / |prb| = %.3g\n", p.name.c_str(), norm(prb[i]),
+                norm(diff) / norm(prb[i]));
+    CHECK(norm(prb[i]) > 0);
+    CHECK(norm(diff) <= 1e-4 * norm(prb[i]));
+  }
+}
+
+// The prb gradient of F = mean radiance with respect to the scalar parameter `name` against wide
+// central differences, both averaged over `batches` seeds: for parameters that move sampling,
+// same-seed differences do not differentiate a fixed estimator. Returns the z-score and the
+// standard error of the prb mean relative to it (how small an error the comparison can see).
+struct ExpectationCheck {
+  double z = 0, relative_se = 0;
+};
+ExpectationCheck check_in_expectation(Scene& scene, const std::string& name, float eps, int batches = 6, int spp = 64) {
+  const Camera& cam = scene.cameras[0];
+  Image a(cam.width, cam.height, 3);
+  for (auto& v : a.data) v = 1.f / float(a.data.size());  // F = mean radiance
+  const int h = scene.params.find(name);
+  REQUIRE(h >= 0);
+  scene.params.require_grad({name});
+  const float theta = scene.params[h].value[0];
+  std::vector<double> grad, fd;
+  for (int b = 0; b < batches; ++b) {
+    GradientRequest rq;
+    rq.adjoint_image = &a;
+    rq.pass = {0, spp, 300 + uint64_t(b), false};
+    rq.adjoint_seed = rq.pass.seed;
+    compute_gradient(scene, rq);
+    grad.push_back(scene.params[h].grad[0]);
+    auto F = [&](float v) {
+      scene.params[h].value[0] = v;
+      Image img = render(scene, rq.pass);
+      double f = 0;
+      for (size_t i = 0; i < img.data.size(); ++i) f += double(a.data[i]) * img.data[i];
+      return f;
+    };
+    fd.push_back((F(theta + eps) - F(theta - eps)) / (2 * eps));
+    scene.params[h].value[0] = theta;
+  }
+  auto mean = [](const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size()); };
+  auto se = [&](const std::vector<double>& v) {
+    double m = mean(v), s = 0;
+    for (double x : v) s += (x - m) * (x - m);
+    return std::sqrt(s / double(v.size() - 1) / double(v.size()));
+  };
+  ExpectationCheck c;
+  c.z = (mean(grad) - mean(fd)) / std::sqrt(se(grad) * se(grad) + se(fd) * se(fd));
+  c.relative_se = std::sqrt(se(grad) * se(grad) + se(fd) * se(fd)) / std::abs(mean(grad));
+  INFO(name << ": prb " << mean(grad) << " ± " << se(grad) << ", finite differences " << mean(fd) << " ± " << se(fd));
+  std::printf("in expectation, %s: prb %.6g ± %.2g, finite differences %.6g ± %.2g, z = %.2f\n", name.c_str(),
+              mean(grad), se(grad), mean(fd), se(fd), c.z);
+  CHECK(std::abs(c.z) < 4.0);
+  CHECK(mean(grad) != 0.0);
+  return c;
+}
+
+// Saturated vertex colours (each vertex mostly red, green or blue) on every mesh but the light.
+void paint_vertex_colours(Scene& scene) {
+  for (Mesh& m : scene.meshes) {
+    if (m.emitter >= 0) continue;
+    m.colors.resize(m.vertex_count());
+    for (size_t v = 0; v < m.colors.size(); ++v)
+      m.colors[v] = Vec3f(v % 3 == 0 ? 1.f : 0.15f, v % 3 == 1 ? 1.f : 0.15f, v % 3 == 2 ? 1.f : 0.15f);
+  }
+}
+
 }  // namespace
 
 TEST_CASE("prb matches same-seed central differences for parameters that do not move sampling", "[gradient]") {
@@ -76,20 +159,7 @@ TEST_CASE("prb matches same-seed central differences for parameters that do not 
 TEST_CASE("taped AD and prb agree to float precision on the same random numbers", "[gradient][taped]") {
   auto scene = open_scene();
   Image target = target_for(*scene);
-  scene->params.require_grad({});
-  compute_gradient(*scene, request(target, GradientMethod::Prb, 4));
-  std::vector<std::vector<float>> prb;
-  for (auto& p : scene->params.all()) prb.push_back(p.grad);
-  GradientResult taped = compute_gradient(*scene, request(target, GradientMethod::Taped, 4));
-  CHECK(taped.tape_entries > 0);
-  for (size_t i = 0; i < prb.size(); ++i) {
-    const Param& p = scene->params.all()[i];
-    std::vector<float> diff(p.grad.size());
-    for (size_t k = 0; k < diff.size(); ++k) diff[k] = p.grad[k] - prb[i][k];
-    INFO(p.name << ": |prb| = " << norm(prb[i]) << ", |taped - prb| = " << norm(diff));
-    CHECK(norm(prb[i]) > 0);
-    CHECK(norm(diff) <= 1e-4 * norm(prb[i]));
-  }
+  check_prb_matches_taped(*scene, target);
 }
 
 TEST_CASE("emitter radiance gradient is exact: dF/dL = sum(dI * I) / L", "[gradient][precision]") {
@@ -155,47 +225,97 @@ TEST_CASE("rb agrees with prb in expectation on a multi-bounce scene", "[gradien
   }
 }
 
+TEST_CASE("metallic_roughness: prb matches same-seed differences for its base colour and taped AD for all",
+          "[gradient][metallic_roughness]") {
+  test::OpenSceneOptions o;
+  o.alloy = true;
+  {
+    auto scene = open_scene(o);
+    Image target = target_for(*scene);
+    check_prb_matches_taped(*scene, target);
+  }
+  // Base colour does not move sampling (the lobe choice reads metallic and the coat's Fresnel):
+  // same-seed differences, with roulette off as above.
+  o.rr_depth = 0;
+  auto scene = open_scene(o);
+  Image target = target_for(*scene);
+  auto rows = directional_check(*scene, "alloy.base_color", request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
+  for (const auto& r : rows) {
+    INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
+    std::printf("alloy.base_color: adjoint %.6g, finite difference %.6g, relative error %.2g\n", r.adjoint,
+                r.finite_difference, r.relative_error);
+    CHECK(r.relative_error < 1e-2);
+    CHECK(std::abs(r.finite_difference) > 0);
+  }
+}
+
+TEST_CASE("metallic_roughness: roughness and metallic gradients agree with finite differences in expectation",
+          "[gradient][metallic_roughness]") {
+  // Metallic picks the lobe a BSDF sample comes from and roughness shapes both lobes' sampling,
+  // so only the expectations agree (see the roughness test below).
+  // An alloy floor filling the view under a smooth sky with one broad bright region: every pixel
+  // carries the gradients, and no small, bright source makes the estimates noisy.
+  const std::string dir = test::temp_dir("alloy-floor");
+  Image sky(32, 16, 3);
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 32; ++x) {
+      const float dx = float(x - 8) / 6.f, dy = float(y - 5) / 3.f;
+      for (int c = 0; c < 3; ++c) sky.at(x, y, c) = 0.2f + 0.05f * float(c) + 3.f * std::exp(-dx * dx - dy * dy);
+    }
+  write_image(dir + "/sky.exr", sky);
+  std::ofstream(dir + "/scene.json") << R"({
+  "integrator": {"spp": 4, "max_depth": 3, "rr_depth": 0, "seed": 1},
+  "cameras": [{"origin": [0, 1.2, 2.2], "target": [0, 0, 0], "fov": 40, "resolution": [24, 24]}],
+  "materials": {"alloy": {"type": "metallic_roughness", "base_color": [0.9, 0.6, 0.3], "roughness": 0.3,
+                          "metallic": 0.4}},
+  "shapes": [{"name": "floor", "type": "rectangle", "material": "alloy",
+              "transform": {"scale": 4, "rotate": {"axis": [1, 0, 0], "angle": -90}}}],
+  "environment": {"type": "envmap", "file": "sky.exr", "scale": 1}
+})";
+  auto scene = load_scene(dir + "/scene.json");
+  // The floor is seen once per path, so the expected image is linear in metallic: a wide step
+  // costs no accuracy and divides the differences' noise (from samples changing lobe).
+  for (const auto& [name, eps] : {std::pair{"alloy.roughness", 0.05f}, std::pair{"alloy.metallic", 0.3f}}) {
+    const ExpectationCheck c = check_in_expectation(*scene, name, eps, 8, 128);
+    // The comparison must be able to see a 10% error in the gradient.
+    CHECK(c.relative_se < 0.025);
+  }
+}
+
+TEST_CASE("vertex colours: gradients of the tinted textures match same-seed differences and taped AD",
+          "[gradient][vertex_colors]") {
+  // Every colour parameter (bitmap and constant albedo, specular, base colour) is read through a
+  // vertex colour; the texture's gradient must be the adjoint times that colour.
+  test::OpenSceneOptions o;
+  o.alloy = true;
+  {
+    auto scene = open_scene(o);
+    paint_vertex_colours(*scene);
+    Image target = target_for(*scene);
+    check_prb_matches_taped(*scene, target);
+  }
+  o.rr_depth = 0;
+  auto scene = open_scene(o);
+  paint_vertex_colours(*scene);
+  Image target = target_for(*scene);
+  for (const char* name : {"floor.albedo", "plastic.albedo", "metal.specular", "alloy.base_color"}) {
+    INFO("parameter " << name);
+    auto rows = directional_check(*scene, name, request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
+    for (const auto& r : rows) {
+      INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
+      std::printf("vertex colours, %s: adjoint %.6g, finite difference %.6g, relative error %.2g\n", name, r.adjoint,
+                  r.finite_difference, r.relative_error);
+      CHECK(r.relative_error < 1e-2);
+      CHECK(std::abs(r.finite_difference) > 0);
+    }
+  }
+}
+
 TEST_CASE("roughness gradients agree with finite differences in expectation", "[gradient][roughness]") {
   // Sampling depends on roughness, so same-seed differences are not the derivative of a fixed
   // estimator; compare the prb gradient with wide central differences, both averaged over seeds.
   auto scene = open_scene();
-  Image a(32, 32, 3);
-  for (auto& v : a.data) v = 1.f / 3072.f;  // F = mean radiance
-  for (const char* name : {"plastic.roughness", "metal.roughness"}) {
-    int h = scene->params.find(name);
-    scene->params.require_grad({name});
-    const float theta = scene->params[h].value[0], eps = 0.05f;
-    std::vector<double> grad, fd;
-    for (int b = 0; b < 6; ++b) {
-      GradientRequest rq;
-      rq.adjoint_image = &a;
-      rq.pass = {0, 64, 300 + uint64_t(b), false};
-      rq.adjoint_seed = rq.pass.seed;
-      compute_gradient(*scene, rq);
-      grad.push_back(scene->params[h].grad[0]);
-      auto F = [&](float v) {
-        scene->params[h].value[0] = v;
-        Image img = render(*scene, rq.pass);
-        double f = 0;
-        for (size_t i = 0; i < img.data.size(); ++i) f += double(a.data[i]) * img.data[i];
-        return f;
-      };
-      fd.push_back((F(theta + eps) - F(theta - eps)) / (2 * eps));
-      scene->params[h].value[0] = theta;
-    }
-    auto mean = [](const std::vector<double>& v) {
-      return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size());
-    };
-    auto se = [&](const std::vector<double>& v) {
-      double m = mean(v), s = 0;
-      for (double x : v) s += (x - m) * (x - m);
-      return std::sqrt(s / double(v.size() - 1) / double(v.size()));
-    };
-    double z = (mean(grad) - mean(fd)) / std::sqrt(se(grad) * se(grad) + se(fd) * se(fd));
-    INFO(name << ": prb " << mean(grad) << " ± " << se(grad) << ", finite differences " << mean(fd) << " ± " << se(fd));
-    CHECK(std::abs(z) < 4.0);
-    CHECK(mean(grad) != 0.0);
-  }
+  for (const char* name : {"plastic.roughness", "metal.roughness"}) check_in_expectation(*scene, name, 0.05f);
 }
 
 TEST_CASE("gradient is zero for texels the camera cannot see and has the right sign", "[gradient][shape]") {

@@ -1,7 +1,8 @@
 #pragma once
 // Small scenes generated at test time (into a temporary folder), so gradient tests exercise every
-// kernel kind: bitmap and constant textures, diffuse/conductor/plastic BSDFs, an area light and
-// an importance-sampled environment map, with NEE, MIS and Russian roulette all active.
+// kernel kind: bitmap and constant textures, diffuse/conductor/plastic BSDFs (and, optionally,
+// their metallic-roughness blend), an area light and an importance-sampled environment map, with
+// NEE, MIS and Russian roulette all active.
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -35,6 +36,8 @@ struct OpenSceneOptions {
   int rr_depth = 2;
   bool environment = true;
   bool area_light = true;
+  // A fourth object in front: a cube of glTF's metallic-roughness blend ("alloy", metallic 0.4).
+  bool alloy = false;
 };
 
 // A textured floor with a plastic and a conductor cube under a small area light and a sky map.
@@ -63,7 +66,11 @@ inline std::string write_open_scene(const std::string& dir, const OpenSceneOptio
     "floor": {"type": "diffuse", "albedo": {"type": "bitmap", "file": "floor.exr", "wrap": "repeat"}},
     "plastic": {"type": "roughplastic", "albedo": [0.2, 0.4, 0.7], "roughness": 0.3},
     "metal": {"type": "roughconductor", "specular": [0.9, 0.7, 0.4], "roughness": 0.25},
-    "white": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}
+    "white": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]})" +
+                     (o.alloy ? R"(,
+    "alloy": {"type": "metallic_roughness", "base_color": [0.9, 0.6, 0.3], "roughness": 0.3, "metallic": 0.4})"
+                              : "") +
+                     R"(
   },
   "shapes": [
     {"name": "floor", "type": "rectangle", "material": "floor",
@@ -72,6 +79,10 @@ inline std::string write_open_scene(const std::string& dir, const OpenSceneOptio
      "transform": {"scale": 0.4, "rotate": {"axis": [0, 1, 0], "angle": 30}, "translate": [-0.6, 0.4, 0]}},
     {"name": "ball", "type": "cube", "material": "metal",
      "transform": {"scale": 0.35, "rotate": {"axis": [1, 1, 0], "angle": 40}, "translate": [0.7, 0.45, 0.3]}})" +
+                     (o.alloy ? R"(,
+    {"name": "alloy_box", "type": "cube", "material": "alloy",
+     "transform": {"scale": 0.3, "rotate": {"axis": [0, 1, 0], "angle": -25}, "translate": [0.05, 0.3, 1.0]}})"
+                              : "") +
                      (o.area_light ? R"(,
     {"name": "light", "type": "rectangle", "material": "white", "emitter": {"radiance": [6, 5, 4]},
      "transform": {"scale": 0.4, "rotate": {"axis": [1, 0, 0], "angle": 90}, "translate": [0, 2.2, 0]}})"

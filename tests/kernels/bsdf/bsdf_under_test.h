@@ -8,13 +8,15 @@
 
 namespace bl::test {
 
-enum class BsdfKind { Diffuse, RoughConductor, RoughPlastic };
+enum class BsdfKind { Diffuse, RoughConductor, RoughPlastic, MetallicRoughness };
 
 struct BsdfUnderTest {
   BsdfKind kind = BsdfKind::Diffuse;
-  Vec3f color{1.f, 1.f, 1.f};  // albedo (diffuse, roughplastic) or specular (roughconductor)
+  // albedo (diffuse, roughplastic), specular (roughconductor) or base colour (metallic_roughness)
+  Vec3f color{1.f, 1.f, 1.f};
   float roughness = 0.5f;
-  float ior = 1.5f;
+  float ior = 1.5f;       // roughplastic (metallic_roughness's dielectric is fixed at 1.5)
+  float metallic = 0.5f;  // metallic_roughness
 
   // The BSDF as the renderer sees it: a BsdfValue (kernels/bsdf/material.h), whose dispatch
   // over BSDF types is the one under test.
@@ -24,10 +26,12 @@ struct BsdfUnderTest {
     BsdfValue<T> v;
     v.type = kind == BsdfKind::Diffuse          ? BsdfType::Diffuse
              : kind == BsdfKind::RoughConductor ? BsdfType::RoughConductor
-                                                : BsdfType::RoughPlastic;
+             : kind == BsdfKind::RoughPlastic   ? BsdfType::RoughPlastic
+                                                : BsdfType::MetallicRoughness;
     (kind == BsdfKind::RoughConductor ? v.specular : v.albedo) = c;
     v.roughness = T(roughness);
     v.ior = ior;
+    v.metallic = T(metallic);
     return v;
   }
   template <class T>
@@ -45,6 +49,8 @@ struct BsdfUnderTest {
         return "roughconductor";
       case BsdfKind::RoughPlastic:
         return "roughplastic";
+      case BsdfKind::MetallicRoughness:
+        return "metallic_roughness";
     }
     return "?";
   }
@@ -55,6 +61,7 @@ struct BsdfUnderTest {
     o << name() << " color (" << color.x << ", " << color.y << ", " << color.z << ")";
     if (kind != BsdfKind::Diffuse) o << " roughness " << roughness;
     if (kind == BsdfKind::RoughPlastic) o << " ior " << ior;
+    if (kind == BsdfKind::MetallicRoughness) o << " metallic " << metallic;
     o << " wo (" << wo.x << ", " << wo.y << ", " << wo.z << ")";
     return o.str();
   }

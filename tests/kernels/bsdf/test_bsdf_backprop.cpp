@@ -1,6 +1,6 @@
 // Derivative shaders of the BSDFs against central differences of their own eval<double>, at
 // random directions (upper hemisphere, down to 0.1° above the horizon; half of the wi inside the
-// specular lobe) and random parameters (roughness in [0.02, 1]).
+// specular lobe) and random parameters (roughness in [0.02, 1]; metallic 0, 1 or in (0, 1)).
 #include <catch2/catch.hpp>
 
 #include <array>
@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "kernels/bsdf/diffuse.h"
+#include "kernels/bsdf/metallic_roughness.h"
 #include "kernels/bsdf/roughconductor.h"
 #include "kernels/bsdf/roughplastic.h"
 #include "tests/kernels/gradcheck.h"
@@ -23,19 +24,21 @@ namespace {
 constexpr int kTrials = 3000;
 constexpr double kRelTolerance = 1e-3, kAbsFloor = 1e-6;
 
-// Four scalar inputs: an RGB colour (albedo or specular) and, except for diffuse, the roughness.
-using Inputs = std::array<double, 4>;
+// Up to five scalar inputs: an RGB colour (albedo, specular or base colour), except for diffuse
+// the roughness, and for metallic_roughness the metallic weight.
+using Inputs = std::array<double, 5>;
 
 struct Trial {
-  Inputs inputs;
+  Inputs inputs{};
   float ior;
   Vec3f wo, wi, adjoint;
   std::string describe(const char* bsdf) const {
     std::ostringstream o;
     o.precision(9);
     o << bsdf << " colour (" << inputs[0] << ", " << inputs[1] << ", " << inputs[2] << ") roughness " << inputs[3]
-      << " ior " << ior << " wo (" << wo.x << ", " << wo.y << ", " << wo.z << ") wi (" << wi.x << ", " << wi.y << ", "
-      << wi.z << ") adjoint (" << adjoint.x << ", " << adjoint.y << ", " << adjoint.z << ")";
+      << " metallic " << inputs[4] << " ior " << ior << " wo (" << wo.x << ", " << wo.y << ", " << wo.z << ") wi ("
+      << wi.x << ", " << wi.y << ", " << wi.z << ") adjoint (" << adjoint.x << ", " << adjoint.y << ", " << adjoint.z
+      << ")";
     return o.str();
   }
 };
@@ -61,11 +64,15 @@ Trial random_trial(TestRng& rng) {
 void check_backprop(const char* name, int parameter_count, const std::function<Inputs(const Trial&)>& backprop,
                     const std::function<Spectrum<double>(const Trial&, const Inputs&)>& eval, uint64_t seed) {
   TestRng rng(seed);
-  const std::vector<std::string> names{"colour.r", "colour.g", "colour.b", "roughness"};
+  const std::vector<std::string> names{"colour.r", "colour.g", "colour.b", "roughness", "metallic"};
   double worst = 0.0;
   std::string worst_trial;
   for (int trial = 0; trial < kTrials; ++trial) {
-    const Trial t = random_trial(rng);
+    Trial t = random_trial(rng);
+    // The metallic weight, drawn only when it is an input (the other BSDFs keep their trials):
+    // every fifth trial the pure dielectric, every fifth the pure metal, else a blend.
+    if (parameter_count == 5)
+      t.inputs[4] = trial % 5 == 0 ? 0.0 : trial % 5 == 1 ? 1.0 : double(float(rng.uniform(0.0, 1.0)));
     const Inputs analytic = backprop(t);
     std::vector<double> got, expected;
     for (int k = 0; k < parameter_count; ++k) {
@@ -137,6 +144,22 @@ TEST_CASE("roughplastic backprop matches finite differences of its eval", "[bsdf
       3);
 }
 
+TEST_CASE("metallic_roughness backprop matches finite differences of its eval", "[bsdf][backprop]") {
+  check_backprop(
+      "metallic_roughness", 5,
+      [](const Trial& t) {
+        const MetallicRoughnessParams<float> p{Vec3f(float(t.inputs[0]), float(t.inputs[1]), float(t.inputs[2])),
+                                               float(t.inputs[3]), float(t.inputs[4])};
+        const MetallicRoughnessParams<float> g = metallic_roughness_backprop(p, t.wo, t.wi, t.adjoint);
+        return Inputs{g.base_color.x, g.base_color.y, g.base_color.z, g.roughness, g.metallic};
+      },
+      [](const Trial& t, const Inputs& x) {
+        return metallic_roughness_eval(MetallicRoughnessParams<double>{Spectrum<double>(x[0], x[1], x[2]), x[3], x[4]},
+                                       t.wo, t.wi);
+      },
+      4);
+}
+
 // Below the horizon eval is zero, so the gradient must be too (no stray contributions from
 // paths that arrive at the back of a one-sided surface).
 TEST_CASE("BSDF backprop is zero below the horizon", "[bsdf][backprop]") {
@@ -150,5 +173,9 @@ TEST_CASE("BSDF backprop is zero below the horizon", "[bsdf][backprop]") {
     const RoughPlasticParams<float> p = roughplastic_backprop({Vec3f(0.5f), 0.3f, 1.5f}, wo, wi, adjoint);
     CHECK(is_zero(p.albedo));
     CHECK(p.roughness == 0.f);
+    const MetallicRoughnessParams<float> b = metallic_roughness_backprop({Vec3f(0.5f), 0.3f, 0.4f}, wo, wi, adjoint);
+    CHECK(is_zero(b.base_color));
+    CHECK(b.roughness == 0.f);
+    CHECK(b.metallic == 0.f);
   }
 }

@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <vector>
 
+#include "kernels/bsdf/metallic_roughness.h"
 #include "tests/kernels/bsdf/bsdf_under_test.h"
 #include "tests/kernels/spherical_quadrature.h"
 #include "tests/kernels/test_rng.h"
@@ -23,6 +24,8 @@ BsdfUnderTest random_bsdf(BsdfKind kind, TestRng& rng) {
   b.color = Vec3f(float(rng.uniform(0.05, 1.0)), float(rng.uniform(0.05, 1.0)), float(rng.uniform(0.05, 1.0)));
   b.roughness = float(rng.uniform(0.02, 1.0));
   b.ior = float(rng.uniform(1.2, 2.0));
+  // Drawn only for the blend, so the other BSDFs see the same random parameters as before.
+  if (kind == BsdfKind::MetallicRoughness) b.metallic = float(rng.uniform(0.0, 1.0));
   return b;
 }
 
@@ -32,17 +35,18 @@ double directional_albedo(const BsdfUnderTest& bsdf, const Vec3f& wo) {
 }
 
 // White-furnace table over roughness and incidence; returns the largest albedo.
-double white_furnace(BsdfKind kind, const std::vector<float>& roughnesses) {
+double white_furnace(BsdfKind kind, const std::vector<float>& roughnesses, float metallic = 0.5f) {
   const std::vector<double> incidence{0, 30, 60, 75, 85, 89};
   double worst = 0.0;
-  std::printf("white furnace, %s: directional albedo with colour 1\n  alpha \\ theta_o:",
-              BsdfUnderTest{kind}.name().c_str());
+  std::printf("white furnace, %s: directional albedo with colour 1", BsdfUnderTest{kind}.name().c_str());
+  if (kind == BsdfKind::MetallicRoughness) std::printf(", metallic %.2f", metallic);
+  std::printf("\n  alpha \\ theta_o:");
   for (double t : incidence) std::printf(" %7.1f", t);
   std::printf("\n");
   for (float alpha : roughnesses) {
     std::printf("  %15.3f:", alpha);
     for (double theta : incidence) {
-      const BsdfUnderTest bsdf{kind, {1.f, 1.f, 1.f}, alpha};
+      const BsdfUnderTest bsdf{kind, {1.f, 1.f, 1.f}, alpha, 1.5f, metallic};
       const Vec3f wo = spherical_direction(theta * kDegree, 0.4);
       const double albedo = directional_albedo(bsdf, wo);
       std::printf(" %7.4f", albedo);
@@ -61,7 +65,8 @@ double white_furnace(BsdfKind kind, const std::vector<float>& roughnesses) {
 
 TEST_CASE("BSDFs are reciprocal: eval(wo, wi)/cos θi = eval(wi, wo)/cos θo", "[bsdf][reciprocity]") {
   TestRng rng(11);
-  for (BsdfKind kind : {BsdfKind::Diffuse, BsdfKind::RoughConductor, BsdfKind::RoughPlastic}) {
+  for (BsdfKind kind :
+       {BsdfKind::Diffuse, BsdfKind::RoughConductor, BsdfKind::RoughPlastic, BsdfKind::MetallicRoughness}) {
     double worst = 0.0;
     for (int trial = 0; trial < 4000; ++trial) {
       const BsdfUnderTest bsdf = random_bsdf(kind, rng);
@@ -98,4 +103,35 @@ TEST_CASE("white furnace: roughconductor conserves energy", "[bsdf][energy]") {
 // A white plastic: coat reflection plus the base seen through the coat (1 − Fr twice).
 TEST_CASE("white furnace: roughplastic conserves energy", "[bsdf][energy]") {
   white_furnace(BsdfKind::RoughPlastic, {0.02f, 0.05f, 0.2f, 0.5f, 1.0f});
+}
+
+// A white blend mixes two lobes that each conserve energy, so it does too.
+TEST_CASE("white furnace: metallic_roughness conserves energy", "[bsdf][energy]") {
+  for (float metallic : {0.3f, 0.7f}) white_furnace(BsdfKind::MetallicRoughness, {0.02f, 0.2f, 1.0f}, metallic);
+}
+
+// The blend is glTF's mix(dielectric, metal, metallic) of backlight's own lobes, channel by
+// channel, and its pdf the same mixture of theirs; at m = 0 and 1 it is exactly one lobe.
+TEST_CASE("metallic_roughness is the metallic-weighted blend of roughplastic and roughconductor", "[bsdf]") {
+  TestRng rng(17);
+  for (int trial = 0; trial < 2000; ++trial) {
+    const float metallic = trial % 10 == 0 ? 0.f : trial % 10 == 1 ? 1.f : float(rng.uniform(0.0, 1.0));
+    const Vec3f base(float(rng.uniform(0.0, 1.0)), float(rng.uniform(0.0, 1.0)), float(rng.uniform(0.0, 1.0)));
+    const float alpha = float(rng.uniform(0.02, 1.0));
+    const Vec3f wo = rng.upper_hemisphere(1e-2), wi = rng.upper_hemisphere(1e-2);
+    const MetallicRoughnessParams<double> p{Spectrum<double>(base), double(alpha), double(metallic)};
+    const RoughPlasticParams<double> plastic{Spectrum<double>(base), double(alpha), 1.5f};
+    const RoughConductorParams<double> conductor{Spectrum<double>(base), double(alpha)};
+    const Vec3d blend = metallic_roughness_eval(p, wo, wi);
+    const Vec3d expected = roughplastic_eval(plastic, wo, wi) * (1.0 - metallic) +
+                           roughconductor_eval(conductor, wo, wi) * double(metallic);
+    INFO("metallic " << metallic << " alpha " << alpha << " wo (" << wo.x << ", " << wo.y << ", " << wo.z << ") wi ("
+                     << wi.x << ", " << wi.y << ", " << wi.z << ")");
+    for (int c = 0; c < 3; ++c) CHECK(blend[c] == Approx(expected[c]).epsilon(1e-12).margin(1e-300));
+    const MetallicRoughnessParams<float> pf{base, alpha, metallic};
+    const double pdf = metallic_roughness_pdf(pf, wo, wi);
+    const double expected_pdf = double(metallic) * roughconductor_pdf({base, alpha}, wo, wi) +
+                                (1.0 - metallic) * roughplastic_pdf({base, alpha, 1.5f}, wo, wi);
+    CHECK(pdf == Approx(expected_pdf).epsilon(1e-6));
+  }
 }

@@ -1,5 +1,7 @@
 // BSDF samplers against their own pdfs: chi-square goodness of fit over the hemisphere, the pdf
-// each sample reports against pdf(wo, wi), and ∫ pdf dω against the fraction of samples not lost.
+// each sample reports against pdf(wo, wi), ∫ pdf dω against the fraction of samples not lost, and
+// the path loop's weight eval/pdf of sampled directions against quadrature of eval (a sampler must
+// reach every direction where eval is non-zero).
 #include <catch2/catch.hpp>
 
 #include <cmath>
@@ -64,6 +66,17 @@ TEST_CASE("roughplastic sampler matches its pdf (chi-square)", "[bsdf][chi2]") {
       check_sampler(BsdfUnderTest{BsdfKind::RoughPlastic, {0.8f, 0.4f, 0.2f}, alpha}, wo, seed++);
 }
 
+// The blend picks its conductor lobe with probability m and its plastic lobe otherwise; both
+// lobes must show up in the histogram with the mixture's weights.
+TEST_CASE("metallic_roughness sampler matches its pdf (chi-square)", "[bsdf][chi2]") {
+  uint64_t seed = 400;
+  for (float metallic : {0.3f, 0.7f})
+    for (float alpha : {0.05f, 0.2f, 0.6f})
+      for (const Vec3f& wo : outgoing_directions())
+        check_sampler(BsdfUnderTest{BsdfKind::MetallicRoughness, {0.8f, 0.5f, 0.2f}, alpha, 1.5f, metallic}, wo,
+                      seed++);
+}
+
 // Where every sample is kept ∫ pdf must be 1; where some are lost (GGX reflections below the
 // horizon) it must equal the kept fraction and never exceed 1.
 TEST_CASE("BSDF pdfs integrate to the fraction of samples kept", "[bsdf][pdf]") {
@@ -71,6 +84,8 @@ TEST_CASE("BSDF pdfs integrate to the fraction of samples kept", "[bsdf][pdf]") 
   for (float alpha : {0.05f, 0.3f, 1.0f}) {
     bsdfs.push_back({BsdfKind::RoughConductor, {1.f, 1.f, 1.f}, alpha});
     bsdfs.push_back({BsdfKind::RoughPlastic, {1.f, 1.f, 1.f}, alpha});
+    for (float metallic : {0.3f, 0.7f})
+      bsdfs.push_back({BsdfKind::MetallicRoughness, {1.f, 1.f, 1.f}, alpha, 1.5f, metallic});
   }
   const long kSamples = 200'000;
   for (const BsdfUnderTest& bsdf : bsdfs)
@@ -96,8 +111,9 @@ TEST_CASE("BSDF pdfs integrate to the fraction of samples kept", "[bsdf][pdf]") 
 
 TEST_CASE("BSDF samplers reject outgoing directions below the horizon", "[bsdf]") {
   const Vec3f below = spherical_direction(100.0 * kDegree, 0.3);
-  for (const BsdfUnderTest& bsdf : {BsdfUnderTest{BsdfKind::Diffuse}, BsdfUnderTest{BsdfKind::RoughConductor},
-                                    BsdfUnderTest{BsdfKind::RoughPlastic}}) {
+  for (const BsdfUnderTest& bsdf :
+       {BsdfUnderTest{BsdfKind::Diffuse}, BsdfUnderTest{BsdfKind::RoughConductor},
+        BsdfUnderTest{BsdfKind::RoughPlastic}, BsdfUnderTest{BsdfKind::MetallicRoughness}}) {
     INFO(bsdf.describe(below));
     CHECK(bsdf.sample(below, 0.3f, {0.4f, 0.6f}).pdf == 0.f);
     CHECK(bsdf.pdf(below, Vec3f(0.f, 0.f, 1.f)) == 0.f);
@@ -105,4 +121,43 @@ TEST_CASE("BSDF samplers reject outgoing directions below the horizon", "[bsdf]"
     CHECK(is_zero(bsdf.eval<float>(below, Vec3f(0.f, 0.f, 1.f))));
     CHECK(is_zero(bsdf.eval<float>(Vec3f(0.f, 0.f, 1.f), below)));
   }
+}
+
+// The path loop weights a sampled direction by eval/pdf (bsdf.h: sample returns no weight of its
+// own). Its mean must be the directional albedo ∫ eval dωi, which quadrature gives independently:
+// this holds only if the reported pdf is the density samples are drawn from and is non-zero
+// wherever eval is.
+TEST_CASE("sampled weights eval/pdf estimate the directional albedo without bias", "[bsdf][pdf]") {
+  std::vector<BsdfUnderTest> bsdfs{{BsdfKind::Diffuse, {0.7f, 0.5f, 0.3f}}};
+  for (float alpha : {0.1f, 0.5f}) {
+    bsdfs.push_back({BsdfKind::RoughConductor, {0.9f, 0.6f, 0.3f}, alpha});
+    bsdfs.push_back({BsdfKind::RoughPlastic, {0.8f, 0.4f, 0.2f}, alpha});
+    for (float metallic : {0.3f, 0.7f})
+      bsdfs.push_back({BsdfKind::MetallicRoughness, {0.8f, 0.5f, 0.2f}, alpha, 1.5f, metallic});
+  }
+  const long kSamples = 400'000;
+  uint64_t seed = 500;
+  for (const BsdfUnderTest& bsdf : bsdfs)
+    for (double theta : {10.0, 50.0, 80.0}) {
+      const Vec3f wo = spherical_direction(theta * kDegree, 0.9);
+      TestRng rng(seed++);
+      Vec3d sum(0.0), sum2(0.0);
+      for (long s = 0; s < kSamples; ++s) {
+        const float u_lobe = rng.next_float();
+        const Vec2f u{rng.next_float(), rng.next_float()};
+        const BsdfSample bs = bsdf.sample(wo, u_lobe, u);
+        if (!(bs.pdf > 0.f)) continue;
+        const Vec3f weight = bsdf.eval<float>(wo, bs.wi) / bs.pdf;
+        for (int c = 0; c < 3; ++c) sum[c] += weight[c], sum2[c] += double(weight[c]) * weight[c];
+      }
+      for (int c = 0; c < 3; ++c) {
+        const double quadrature =
+            integrate_over_domain(upper_hemisphere(), [&](const Vec3f& wi) { return bsdf.eval<float>(wo, wi)[c]; });
+        const double mean = sum[c] / double(kSamples);
+        const double sigma = std::sqrt(std::max(0.0, sum2[c] / double(kSamples) - mean * mean) / double(kSamples));
+        INFO(bsdf.describe(wo) << " channel " << c << ": sampled " << mean << " ± " << sigma << ", quadrature "
+                               << quadrature);
+        CHECK(std::abs(mean - quadrature) <= 5.0 * sigma + 1e-3 * quadrature);
+      }
+    }
 }
