@@ -38,10 +38,12 @@ std::string find_plugin(const std::string& file, std::string* looked_in) {
   return "";
 }
 
-// dlopen + dlsym of `entry`, once per plugin; the table or a reason why not.
-const void* open_plugin(const std::string& name, const char* entry, std::string* reason) {
+// dlopen + dlsym of `entry`, once per plugin; the table or a reason why not. The entry point is
+// called through its own type (`const Api* ()`): UBSan checks function pointer types.
+template <class Api>
+const Api* open_plugin(const std::string& name, const char* entry, std::string* reason) {
   static std::mutex mutex;
-  static std::map<std::string, std::pair<const void*, std::string>> opened;
+  static std::map<std::string, std::pair<const Api*, std::string>> opened;
   std::lock_guard<std::mutex> lock(mutex);
   if (auto it = opened.find(name); it != opened.end()) {
     *reason = it->second.second;
@@ -50,7 +52,7 @@ const void* open_plugin(const std::string& name, const char* entry, std::string*
   const std::string file = "libbacklight_" + name + ".so";
   std::string looked_in;
   const std::string path = find_plugin(file, &looked_in);
-  const void* table = nullptr;
+  const Api* table = nullptr;
   if (path.empty()) {
     *reason = file + " not found in " + looked_in + "; BACKLIGHT_PLUGIN_DIR names the folder holding it";
   } else if (void* handle = ::dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL); !handle) {
@@ -59,10 +61,9 @@ const void* open_plugin(const std::string& name, const char* entry, std::string*
   } else if (void* fn = ::dlsym(handle, entry); !fn) {
     *reason = path + " has no " + entry;
   } else {
-    using Entry = const void* (*)();
+    using Entry = const Api* (*)();
     table = reinterpret_cast<Entry>(fn)();
-    // Every table starts with its interface version.
-    if (!table || *static_cast<const int*>(table) != kPluginAbi) {
+    if (!table || table->abi != kPluginAbi) {
       *reason = path + " was built for another version of backlight";
       table = nullptr;
     }
@@ -74,9 +75,9 @@ const void* open_plugin(const std::string& name, const char* entry, std::string*
 template <class Api>
 const Api& get(const std::string& name, const char* entry, const std::string& for_path, const std::string& what) {
   std::string reason;
-  const void* table = open_plugin(name, entry, &reason);
+  const Api* table = open_plugin<Api>(name, entry, &reason);
   if (!table) throw file_error(for_path, what + " needs the " + name + " plugin (" + reason + ")");
-  return *static_cast<const Api*>(table);
+  return *table;
 }
 
 }  // namespace
