@@ -1,7 +1,11 @@
 #include "engine/io/image_io.h"
 
-#include <OpenImageIO/filesystem.h>
-#include <OpenImageIO/imageio.h>
+#include <ImfChannelList.h>
+#include <ImfFrameBuffer.h>
+#include <ImfHeader.h>
+#include <ImfInputFile.h>
+#include <ImfOutputFile.h>
+#include <png.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -15,15 +19,15 @@
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/plugins/plugin.h"
 
 namespace bl {
 
 namespace fs = std::filesystem;
-using namespace OIIO;
 
 namespace {
-// Swaps the C stdio stream `stderr` for /dev/null while alive. libpng (inside OpenImageIO) prints
-// its own warnings and errors through stdio; our one-line error says what went wrong. File
+// Swaps the C stdio stream `stderr` for /dev/null while alive. The codecs inside OpenImageIO
+// (libjpeg) print their own warnings and errors through stdio; our one-line error says what went wrong. File
 // descriptor 2 is left alone, so sanitizer and libFuzzer reports (written to the descriptor, or
 // through their own saved stream) still reach the terminal. Loaders run on the main thread,
 // before any progress output.
@@ -169,10 +173,9 @@ uint32_t be32(const unsigned char* b) {
 // PNG, walked chunk by chunk (headers only) before libpng sees it. libpng allocates a chunk at the
 // length the file declares (up to 2 GB) inside ImageInput::open, before we see the image's size:
 // every chunk must fit in the file, and the IHDR's width and height must be within the limits.
-// The copy handed to OpenImageIO keeps the critical chunks and the ancillary ones that affect
-// decoded pixels (tRNS; gAMA, sRGB, cHRM and sBIT, which OpenImageIO's alpha handling reads) and
-// drops the rest (text, XMP, Exif, ICC profiles, times): metadata backlight never uses, parsed by
-// code of OpenImageIO that was not written for hostile files.
+// The copy handed to libpng keeps the critical chunks and the ancillary ones that can affect
+// decoded pixels (tRNS, gAMA, sRGB, cHRM, sBIT) and drops the rest (text, XMP, Exif, ICC
+// profiles, times): metadata backlight never uses.
 std::vector<unsigned char> png_without_metadata(const std::string& path, const std::vector<unsigned char>& in) {
   if (in.size() < 8) throw file_error(path, "corrupt image (truncated PNG signature)");
   std::vector<unsigned char> out(in.begin(), in.begin() + 8);  // signature (checked by image_format)
@@ -263,20 +266,218 @@ std::vector<unsigned char> jpeg_without_metadata(const std::string& path, const 
   return out;
 }
 
-// The OpenImageIO reader for a file, chosen by its first bytes. Only these formats are read:
-// given a file it cannot place, OpenImageIO would try every plugin it has (video through
-// FFmpeg, DICOM, FITS, ...), code that was never meant to see untrusted textures (fuzz_set and
-// fuzz_image found leaks and huge allocations there). The extension is not trusted either.
-const char* image_format(const std::string& path) {
+// The format of a file, chosen by its first bytes; the extension is not trusted. Only these
+// formats are read: given a file it cannot place, OpenImageIO would try every plugin it has
+// (video through FFmpeg, DICOM, FITS, ...), code that was never meant to see untrusted textures
+// (fuzz_set and fuzz_image found leaks and huge allocations there). JPEG and Radiance HDR go
+// through OpenImageIO (the oiio plugin, opened on first use; these names are its readers'); EXR,
+// PNG and PFM are decoded here with OpenEXR, libpng and a few lines.
+std::string image_format(const std::string& path) {
   FileProbe file(path);
   const std::string head = file.read(0, 16);
   auto starts = [&](const char* magic, size_t n) { return head.size() >= n && head.compare(0, n, magic, n) == 0; };
   if (starts("\x89PNG\r\n\x1a\n", 8)) return "png";
   if (starts("\x76\x2f\x31\x01", 4)) return "openexr";
   if (starts("\xff\xd8\xff", 3)) return "jpeg";
-  if (starts("#?", 2)) return "hdr";                     // Radiance: "#?RADIANCE" or "#?RGBE"
-  if (starts("PF", 2) || starts("Pf", 2)) return "pnm";  // PFM (OpenImageIO's PNM reader)
+  if (starts("#?", 2)) return "hdr";  // Radiance: "#?RADIANCE" or "#?RGBE"
+  if (starts("PF", 2) || starts("Pf", 2)) return "pfm";
   throw file_error(path, "unsupported image format (expected PNG, OpenEXR, JPEG, Radiance HDR or PFM)");
+}
+
+std::string first_line(std::string s) {
+  if (auto nl = s.find('\n'); nl != std::string::npos) s.resize(nl);
+  return s;
+}
+
+// OpenEXR: the data window, channels R, G, B when the file has them, else Y, else the first
+// (at most three) channels in the file's (alphabetical) order; alpha and other layers are not
+// read. Every pixel type is returned as float. check_exr_header has walked the header already.
+Image read_exr(const std::string& path) {
+  try {
+    Imf::InputFile file(path.c_str());
+    const Imf::Header& header = file.header();
+    const Imath::Box2i dw = header.dataWindow();
+    const int64_t w = int64_t(dw.max.x) - dw.min.x + 1, h = int64_t(dw.max.y) - dw.min.y + 1;
+    if (w <= 0 || h <= 0) throw file_error(path, "image has no pixels");
+    limits::check_image_size(path, uint64_t(w), uint64_t(h));
+    const Imf::ChannelList& list = header.channels();
+    std::vector<std::string> names;
+    if (list.findChannel("R") && list.findChannel("G") && list.findChannel("B"))
+      names = {"R", "G", "B"};
+    else if (list.findChannel("Y"))
+      names = {"Y"};
+    else
+      for (auto it = list.begin(); it != list.end() && names.size() < 3; ++it) names.emplace_back(it.name());
+    if (names.empty()) throw file_error(path, "image has no channels");
+    for (const auto& n : names)
+      if (const Imf::Channel* c = list.findChannel(n); c->xSampling != 1 || c->ySampling != 1)
+        throw file_error(path, "unsupported OpenEXR image (channel '" + n.substr(0, 64) + "' is subsampled)");
+    Image img(int(w), int(h), int(names.size()));
+    img.from_float_file = true;
+    const size_t xstride = sizeof(float) * names.size(), ystride = xstride * size_t(w);
+    Imf::FrameBuffer frame;
+    for (size_t c = 0; c < names.size(); ++c)
+      frame.insert(names[c], Imf::Slice::Make(Imf::FLOAT, img.data.data() + c, dw, xstride, ystride));
+    file.setFrameBuffer(frame);
+    file.readPixels(dw.min.y, dw.max.y);
+    return img;
+  } catch (const InputError&) {
+    throw;
+  } catch (const std::exception& e) {
+    throw file_error(path, "corrupt image (" + first_line(e.what()) + ")");
+  }
+}
+
+// PNG through libpng, from the copy png_without_metadata made. Palette and low bit depths are
+// expanded; 16-bit samples keep their precision; alpha (and tRNS) is ignored: the colour is
+// returned as stored, not composited. libpng reports errors by longjmp, so the two steps that
+// call it hold no objects with destructors; PngRead owns everything.
+struct PngRead {
+  const std::vector<unsigned char>* bytes = nullptr;
+  size_t pos = 0;
+  png_structp png = nullptr;
+  png_infop info = nullptr;
+  char error[256] = "";
+  ~PngRead() {
+    if (png) png_destroy_read_struct(&png, info ? &info : nullptr, nullptr);
+  }
+};
+
+void png_on_error(png_structp png, png_const_charp message) {
+  auto* r = static_cast<PngRead*>(png_get_error_ptr(png));
+  std::snprintf(r->error, sizeof(r->error), "%s", message);
+  png_longjmp(png, 1);
+}
+void png_on_warning(png_structp, png_const_charp) {}
+void png_on_read(png_structp png, png_bytep out, size_t n) {
+  auto* r = static_cast<PngRead*>(png_get_io_ptr(png));
+  if (n > r->bytes->size() - r->pos) png_error(png, "file truncated");
+  std::memcpy(out, r->bytes->data() + r->pos, n);
+  r->pos += n;
+}
+
+bool png_read_header(PngRead* r, int* width, int* height, int* channels, int* depth) {
+  if (setjmp(png_jmpbuf(r->png))) return false;
+  png_set_read_fn(r->png, r, png_on_read);
+  png_read_info(r->png, r->info);
+  const int color = png_get_color_type(r->png, r->info), bits = png_get_bit_depth(r->png, r->info);
+  if (color == PNG_COLOR_TYPE_PALETTE) png_set_palette_to_rgb(r->png);
+  if (color == PNG_COLOR_TYPE_GRAY && bits < 8) png_set_expand_gray_1_2_4_to_8(r->png);
+  if (color & PNG_COLOR_MASK_ALPHA) png_set_strip_alpha(r->png);
+  if (bits == 16) png_set_swap(r->png);  // native (little-endian) 16-bit samples
+  png_set_interlace_handling(r->png);
+  png_read_update_info(r->png, r->info);
+  *width = int(png_get_image_width(r->png, r->info));
+  *height = int(png_get_image_height(r->png, r->info));
+  *channels = png_get_channels(r->png, r->info);
+  *depth = png_get_bit_depth(r->png, r->info);
+  return true;
+}
+bool png_read_rows(PngRead* r, png_bytep* rows) {
+  if (setjmp(png_jmpbuf(r->png))) return false;
+  png_read_image(r->png, rows);
+  return true;
+}
+
+Image read_png(const std::string& path, const std::vector<unsigned char>& bytes) {
+  PngRead r;
+  r.bytes = &bytes;
+  r.png = png_create_read_struct(PNG_LIBPNG_VER_STRING, &r, png_on_error, png_on_warning);
+  if (r.png) r.info = png_create_info_struct(r.png);
+  if (!r.png || !r.info) throw std::bad_alloc();
+  int w = 0, h = 0, channels = 0, depth = 0;
+  if (!png_read_header(&r, &w, &h, &channels, &depth))
+    throw file_error(path, std::string("corrupt image (") + r.error + ")");
+  if (w <= 0 || h <= 0 || (channels != 1 && channels != 3) || (depth != 8 && depth != 16))
+    throw file_error(path, "unsupported PNG layout");
+  limits::check_image_size(path, uint64_t(w), uint64_t(h));
+  const size_t row_bytes = size_t(w) * size_t(channels) * size_t(depth / 8);
+  std::vector<unsigned char> pixels(row_bytes * size_t(h));
+  std::vector<png_bytep> rows(static_cast<size_t>(h));
+  for (size_t y = 0; y < rows.size(); ++y) rows[y] = pixels.data() + y * row_bytes;
+  if (!png_read_rows(&r, rows.data())) throw file_error(path, std::string("corrupt image (") + r.error + ")");
+  Image img(w, h, channels);
+  if (depth == 8) {
+    for (size_t i = 0; i < img.data.size(); ++i) img.data[i] = float(pixels[i]) / 255.f;
+  } else {
+    for (size_t i = 0; i < img.data.size(); ++i) {
+      uint16_t v;
+      std::memcpy(&v, &pixels[2 * i], 2);
+      img.data[i] = float(v) / 65535.f;
+    }
+  }
+  return img;
+}
+
+// Portable float map: "PF" (RGB) or "Pf" (grey), width, height and scale as text, each followed
+// by one white-space character after the last, then rows of floats from the bottom up; a negative
+// scale means little-endian. Sizes are checked against the file before allocating.
+Image read_pfm(const std::string& path) {
+  FileProbe file(path);
+  const std::string head = file.read(0, 128);
+  size_t pos = 2;
+  auto token = [&]() {
+    while (pos < head.size() && std::isspace(static_cast<unsigned char>(head[pos]))) ++pos;
+    const size_t start = pos;
+    while (pos < head.size() && !std::isspace(static_cast<unsigned char>(head[pos]))) ++pos;
+    if (pos == start || pos >= head.size()) throw file_error(path, "corrupt image (truncated PFM header)");
+    return head.substr(start, pos - start);
+  };
+  const std::string ws = token(), hs = token(), ss = token();
+  ++pos;  // the one white-space character before the data
+  auto number = [&](const std::string& t) {
+    char* end = nullptr;
+    const double v = std::strtod(t.c_str(), &end);
+    if (*end != '\0' || !std::isfinite(v)) throw file_error(path, "corrupt image (PFM header value '" + t + "')");
+    return v;
+  };
+  const double w = number(ws), h = number(hs), scale = number(ss);
+  if (w < 1 || h < 1 || w != std::floor(w) || h != std::floor(h) || scale == 0)
+    throw file_error(path, "corrupt image (PFM header: " + ws + " x " + hs + ", scale " + ss + ")");
+  limits::check_image_size(path, uint64_t(std::min(w, 1e12)), uint64_t(std::min(h, 1e12)));
+  const int channels = head[1] == 'F' ? 3 : 1;
+  Image img(int(w), int(h), channels);
+  const size_t row = size_t(img.width) * size_t(channels);
+  if (file.size() < pos || (file.size() - pos) / sizeof(float) < row * size_t(img.height))
+    throw file_error(path, "corrupt image (PFM file shorter than its " + ws + " x " + hs + " pixels)");
+  const bool swap = (scale < 0) != (std::endian::native == std::endian::little);
+  for (int y = 0; y < img.height; ++y) {
+    const std::string bytes = file.read(pos + uint64_t(y) * row * sizeof(float), row * sizeof(float));
+    if (bytes.size() != row * sizeof(float)) throw file_error(path, "cannot read");
+    float* dst = img.data.data() + size_t(img.height - 1 - y) * row;
+    for (size_t i = 0; i < row; ++i) {
+      uint32_t u;
+      std::memcpy(&u, bytes.data() + 4 * i, 4);
+      if (swap) u = __builtin_bswap32(u);
+      std::memcpy(dst + i, &u, 4);
+    }
+  }
+  img.from_float_file = true;
+  return img;
+}
+
+// JPEG and Radiance HDR through OpenImageIO (the oiio plugin).
+Image read_with_plugin(const std::string& path, const std::string& format, const std::vector<unsigned char>& bytes) {
+  const auto& oiio = plugin::oiio(path, format == "jpeg" ? "reading JPEG" : "reading Radiance HDR");
+  StdioStderrSilencer quiet;
+  plugin::ImageHeader spec;
+  std::string error;
+  void* reader = oiio.open(path, format, bytes, int(limits::kImagePixels * 12 >> 20), &spec, &error);
+  if (!reader) throw file_error(path, error);
+  struct Close {
+    const plugin::OiioApi& api;
+    void* reader;
+    ~Close() { api.close(reader); }
+  } close{oiio, reader};
+  if (spec.width <= 0 || spec.height <= 0 || spec.channels <= 0) throw file_error(path, "image has no pixels");
+  // The header's size, checked before anything is allocated (a 69-byte file can claim 10^10 pixels).
+  limits::check_image_size(path, uint64_t(spec.width), uint64_t(spec.height));
+  limits::require_at_most(path, "channel count", uint64_t(spec.channels), 64);
+  // Only the channels kept are read: a header may claim 64 channels of a 2^28-pixel image.
+  Image img(spec.width, spec.height, spec.channels >= 3 ? 3 : 1);
+  img.from_float_file = spec.is_float;
+  if (!oiio.read(reader, img.channels, img.data.data(), &error)) throw file_error(path, error);
+  return img;
 }
 }  // namespace
 
@@ -293,64 +494,36 @@ Image read_image(const std::string& path, bool decode_srgb) {
 Image read_image_unguarded(const std::string& path, bool decode_srgb) {
   require_input_file(path);
   check_exr_header(path);
-  // Readers that honour it refuse images beyond this size before allocating (OpenImageIO 2.4).
-  static const bool oiio_limits = OIIO::attribute("limits:imagesize_MB", int(limits::kImagePixels * 12 >> 20));
-  (void)oiio_limits;
   const std::string format = image_format(path);
-  // PNG and JPEG are decoded from a copy in memory without their metadata (see above).
-  std::vector<unsigned char> bytes;
-  if (format == "png") bytes = png_without_metadata(path, read_whole_file(path));
-  if (format == "jpeg") bytes = jpeg_without_metadata(path, read_whole_file(path));
-  Filesystem::IOMemReader memory(bytes.data(), bytes.size());
-  StdioStderrSilencer quiet;
-  auto in = ImageInput::create(format);
-  if (in && !bytes.empty() && !in->set_ioproxy(&memory))
-    throw file_error(path, "cannot read image (no in-memory reader for " + format + ")");
-  if (in) {
-    ImageSpec opened;
-    if (!in->open(path, opened)) {
-      std::string err = in->geterror();
-      if (auto nl = err.find('\n'); nl != std::string::npos) err.resize(nl);
-      throw file_error(path, "cannot read image" + (err.empty() ? std::string() : " (" + err + ")"));
-    }
+  Image img;
+  if (format == "openexr") {
+    img = read_exr(path);
+  } else if (format == "png") {
+    img = read_png(path, png_without_metadata(path, read_whole_file(path)));
+  } else if (format == "pfm") {
+    img = read_pfm(path);
+  } else {
+    // JPEG is decoded from a copy in memory without its metadata (see above).
+    img = read_with_plugin(
+        path, format,
+        format == "jpeg" ? jpeg_without_metadata(path, read_whole_file(path)) : std::vector<unsigned char>());
   }
-  if (!in) {
-    std::string err = geterror();
-    if (auto nl = err.find('\n'); nl != std::string::npos) err.resize(nl);
-    throw file_error(path, "cannot read image" + (err.empty() ? std::string() : " (" + err + ")"));
-  }
-  const ImageSpec& spec = in->spec();
-  if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) throw file_error(path, "image has no pixels");
-  // The header's size, checked before anything is allocated (a 69-byte PNG can claim 10^10 pixels).
-  limits::check_image_size(path, uint64_t(spec.width), uint64_t(spec.height));
-  limits::require_at_most(path, "channel count", uint64_t(spec.nchannels), 64);
-  Image img(spec.width, spec.height, std::min(spec.nchannels, 3));
-  img.from_float_file = spec.format.is_floating_point();
-  // Only the channels kept are read: a header may claim 64 channels of a 2^28-pixel image.
-  const int nread = img.channels;
-  std::vector<float> all(size_t(spec.width) * size_t(spec.height) * size_t(nread));
-  if (!in->read_image(0, 0, 0, nread, TypeDesc::FLOAT, all.data())) {
-    std::string err = in->geterror();
-    if (auto nl = err.find('\n'); nl != std::string::npos) err.resize(nl);
-    throw file_error(path, "corrupt image (" + err + ")");
-  }
-  in->close();
   const bool srgb = decode_srgb && !img.from_float_file;
-  for (size_t p = 0; p < img.pixel_count(); ++p)
-    for (int c = 0; c < img.channels; ++c) {
-      float v = all[p * size_t(nread) + size_t(c)];
-      if (!std::isfinite(v))
-        throw file_error(path, "pixel (" + std::to_string(p % size_t(spec.width)) + ", " +
-                                   std::to_string(p / size_t(spec.width)) + ") is not a finite number");
-      img.data[p * size_t(img.channels) + size_t(c)] = srgb ? srgb_to_linear(v) : v;
-    }
+  const size_t channels = size_t(img.channels);
+  for (size_t i = 0; i < img.data.size(); ++i) {
+    float& v = img.data[i];
+    if (!std::isfinite(v))
+      throw file_error(path, "pixel (" + std::to_string(i / channels % size_t(img.width)) + ", " +
+                                 std::to_string(i / channels / size_t(img.width)) + ") is not a finite number");
+    if (srgb) v = srgb_to_linear(v);
+  }
   return img;
 }
 
 namespace {
 std::string temp_name(const std::string& path) {
   fs::path p(path);
-  // Keep the extension last: OpenImageIO picks the format from it.
+  // Keep the extension last: OpenImageIO (JPEG, HDR) picks the format from it.
   return (p.parent_path() / ("." + p.stem().string() + ".tmp" + std::to_string(getpid()) + p.extension().string()))
       .string();
 }
@@ -386,6 +559,86 @@ void write_pfm(const std::string& tmp, const std::string& path, const Image& ima
     throw file_error(path, "write failed");
   }
 }
+
+// OpenEXR, 32-bit float channels (Y, Y A, R G B or R G B A), zip compression.
+void write_exr(const std::string& tmp, const std::string& path, const Image& image) {
+  static const std::vector<std::vector<const char*>> names = {{"Y"}, {"Y", "A"}, {"R", "G", "B"}, {"R", "G", "B", "A"}};
+  if (image.channels < 1 || image.channels > 4)
+    throw file_error(path, "OpenEXR images are written with 1 to 4 channels");
+  try {
+    Imf::Header header(image.width, image.height);
+    header.compression() = Imf::ZIP_COMPRESSION;
+    const auto& channel_names = names[size_t(image.channels - 1)];
+    for (const char* n : channel_names) header.channels().insert(n, Imf::Channel(Imf::FLOAT));
+    Imf::OutputFile out(tmp.c_str(), header);
+    const size_t xstride = sizeof(float) * size_t(image.channels), ystride = xstride * size_t(image.width);
+    Imf::FrameBuffer frame;
+    for (size_t c = 0; c < channel_names.size(); ++c)
+      frame.insert(
+          channel_names[c],
+          Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(const_cast<float*>(image.data.data() + c)), xstride, ystride));
+    out.setFrameBuffer(frame);
+    out.writePixels(image.height);
+  } catch (const std::exception& e) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw file_error(path, "write failed (" + first_line(e.what()) + ")");
+  }
+}
+
+// PNG, 8-bit sRGB, through libpng (errors by longjmp: png_write_rows holds no destructors).
+struct PngWrite {
+  FILE* file = nullptr;
+  png_structp png = nullptr;
+  png_infop info = nullptr;
+  char error[256] = "";
+  ~PngWrite() {
+    if (png) png_destroy_write_struct(&png, info ? &info : nullptr);
+    if (file) std::fclose(file);
+  }
+};
+void png_on_write_error(png_structp png, png_const_charp message) {
+  auto* w = static_cast<PngWrite*>(png_get_error_ptr(png));
+  std::snprintf(w->error, sizeof(w->error), "%s", message);
+  png_longjmp(png, 1);
+}
+bool png_write_rows(PngWrite* w, int width, int height, int channels, png_bytep* rows) {
+  if (setjmp(png_jmpbuf(w->png))) return false;
+  static const int types[] = {PNG_COLOR_TYPE_GRAY, PNG_COLOR_TYPE_GRAY_ALPHA, PNG_COLOR_TYPE_RGB,
+                              PNG_COLOR_TYPE_RGB_ALPHA};
+  png_init_io(w->png, w->file);
+  png_set_IHDR(w->png, w->info, png_uint_32(width), png_uint_32(height), 8, types[channels - 1], PNG_INTERLACE_NONE,
+               PNG_COMPRESSION_TYPE_DEFAULT, PNG_FILTER_TYPE_DEFAULT);
+  png_write_info(w->png, w->info);
+  png_write_image(w->png, rows);
+  png_write_end(w->png, nullptr);
+  return true;
+}
+
+void write_png(const std::string& tmp, const std::string& path, const Image& image,
+               const std::vector<unsigned char>& bytes) {
+  if (image.channels < 1 || image.channels > 4) throw file_error(path, "PNG images are written with 1 to 4 channels");
+  std::vector<png_bytep> rows(size_t(image.height));
+  const size_t row_bytes = size_t(image.width) * size_t(image.channels);
+  for (size_t y = 0; y < rows.size(); ++y) rows[y] = const_cast<unsigned char*>(bytes.data() + y * row_bytes);
+  bool ok = false;
+  std::string error;
+  {
+    PngWrite w;
+    w.file = std::fopen(tmp.c_str(), "wb");
+    if (!w.file) throw file_error(path, "cannot open for writing");
+    w.png = png_create_write_struct(PNG_LIBPNG_VER_STRING, &w, png_on_write_error, png_on_warning);
+    if (w.png) w.info = png_create_info_struct(w.png);
+    ok = w.png && w.info && png_write_rows(&w, image.width, image.height, image.channels, rows.data());
+    error = w.error;
+    ok = std::fflush(w.file) == 0 && !std::ferror(w.file) && ok;
+  }
+  if (!ok) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw file_error(path, "write failed" + (error.empty() ? std::string() : " (" + error + ")"));
+  }
+}
 }  // namespace
 
 void check_output_format(const std::string& path) {
@@ -395,6 +648,9 @@ void check_output_format(const std::string& path) {
     throw file_error(path, "unsupported output format '" + ext + "' (use .exr or .png)");
   fs::path dir = fs::path(path).parent_path();
   if (!dir.empty() && !fs::is_directory(dir)) throw file_error(path, "output folder does not exist");
+  // JPEG and HDR are written by the oiio plugin: a missing plugin fails now, not after the work.
+  if (ext == ".hdr" || ext == ".jpg" || ext == ".jpeg")
+    (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");
 }
 
 void write_image(const std::string& path, const Image& image) {
@@ -403,30 +659,29 @@ void write_image(const std::string& path, const Image& image) {
   std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
   const bool is_float = ext == ".exr" || ext == ".hdr" || ext == ".pfm";
   const std::string tmp = temp_name(path);
-  if (ext == ".pfm") {  // OpenImageIO 2.4 reads PFM but writes only 8-bit PNM
+  if (ext == ".pfm") {
     write_pfm(tmp, path, image);
-    commit(tmp, path);
-    return;
-  }
-  auto out = ImageOutput::create(tmp);
-  if (!out) throw file_error(path, "cannot create image writer");
-  ImageSpec spec(image.width, image.height, image.channels, is_float ? TypeDesc::FLOAT : TypeDesc::UINT8);
-  if (is_float) spec.attribute("compression", "zip");
-  if (!out->open(tmp, spec)) throw file_error(path, "cannot open for writing (" + out->geterror() + ")");
-  bool ok;
-  if (is_float) {
-    ok = out->write_image(TypeDesc::FLOAT, image.data.data());
+  } else if (ext == ".exr") {
+    write_exr(tmp, path, image);
   } else {
-    std::vector<unsigned char> bytes(image.data.size());
-    for (size_t i = 0; i < bytes.size(); ++i)
-      bytes[i] = (unsigned char)std::lround(linear_to_srgb(image.data[i]) * 255.f);
-    ok = out->write_image(TypeDesc::UINT8, bytes.data());
-  }
-  ok = out->close() && ok;
-  if (!ok) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    throw file_error(path, "write failed");
+    std::vector<unsigned char> bytes;
+    if (!is_float) {
+      bytes.resize(image.data.size());
+      for (size_t i = 0; i < bytes.size(); ++i)
+        bytes[i] = (unsigned char)std::lround(linear_to_srgb(image.data[i]) * 255.f);
+    }
+    if (ext == ".png") {
+      write_png(tmp, path, image, bytes);
+    } else {  // .hdr, .jpg: OpenImageIO
+      const auto& oiio = plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");
+      std::string error;
+      if (!oiio.write(tmp, image.width, image.height, image.channels, is_float ? image.data.data() : nullptr,
+                      is_float ? nullptr : bytes.data(), &error)) {
+        std::error_code ec;
+        fs::remove(tmp, ec);
+        throw file_error(path, error);
+      }
+    }
   }
   commit(tmp, path);
 }

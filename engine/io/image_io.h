@@ -1,5 +1,6 @@
 #pragma once
-// Images in and out through OpenImageIO. Pixel data is row-major, row 0 on top (the first
+// Images in and out: OpenEXR and PNG through OpenEXR and libpng, PFM directly, JPEG and Radiance
+// HDR through OpenImageIO in a plugin opened on first use (engine/plugins/). Pixel data is row-major, row 0 on top (the first
 // scanline), interleaved channels, linear float. Files are written atomically: to a temporary
 // name in the same folder, then renamed, so a killed run never leaves a truncated file.
 #include <string>
@@ -23,14 +24,15 @@ struct Image {
   size_t pixel_count() const { return size_t(width) * size_t(height); }
 };
 
-// Reads any format OpenImageIO knows. 8/16-bit files are decoded from sRGB to linear when
-// `decode_srgb`; float files are returned as stored. Errors (missing, corrupt, NaN/inf) throw
+// Reads PNG, OpenEXR, JPEG, Radiance HDR and PFM, chosen by the file's first bytes (not its
+// name). 8/16-bit files are decoded from sRGB to linear when `decode_srgb`; float files are
+// returned as stored. One channel (grey; EXR: Y) or three (RGB; EXR: R, G, B); alpha is not read. Errors (missing, corrupt, NaN/inf) throw
 // InputError naming the file.
 Image read_image(const std::string& path, bool decode_srgb);
 Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_image without path-error mapping
 // Throws InputError unless the extension is one write_image supports (check before long work).
 void check_output_format(const std::string& path);
-// Writes by extension: .exr as float RGB(A), .png/.jpg as sRGB 8-bit clamped. Atomic.
+// Writes by extension: .exr/.pfm/.hdr as float, .png/.jpg as sRGB 8-bit clamped. Atomic.
 void write_image(const std::string& path, const Image& image);
 // Writes `text` to `path` atomically (temp file + rename).
 void write_text_atomic(const std::string& path, const std::string& text);

@@ -529,7 +529,8 @@ class Job {
   bool matplotlib_ = false;
   double elapsed_before_ = 0;  // seconds spent before a resume
   double initial_loss_ = -1;
-  double step_seconds_ = 0;  // regularizers, optimizer steps and sampling tables, since this start
+  double initial_rmse_ = -1;  // before the first update (log_ rows hold the RMSE after their update)
+  double step_seconds_ = 0;   // regularizers, optimizer steps and sampling tables, since this start
 
   std::string out(const std::string& name) const { return (fs::path(c_.output) / name).string(); }
 
@@ -724,10 +725,12 @@ class Job {
       if (stop) {
         progress.finish();
         write_checkpoint(it, seconds());
+        write_report(it, seconds(), false, true);
         std::fprintf(stderr, "optimize: interrupted; checkpoint of %d completed iteration(s) in %s\n", it,
                      c_.output.c_str());
         return 0;
       }
+      if (initial_rmse_ < 0 && log_.empty()) initial_rmse_ = current_rmse();
       dist::reduce_gradients(scene_->params);  // the ranks' shares of every view, summed once
       const auto step_start = std::chrono::steady_clock::now();
       loss /= per_iteration;
@@ -822,7 +825,9 @@ class Job {
   // report.html: one self-contained page (images inlined) with the run's state, its curves, the
   // comparison of target, start and result, and the latest parameter snapshots. While the run
   // goes on it reloads itself every 15 s; it is rewritten at every snapshot and at the end.
-  void write_report(int done, double seconds, bool finished) const {
+  // A run stopped by a signal (`interrupted`) gets a page that no longer reloads and shows the
+  // last snapshot's images.
+  void write_report(int done, double seconds, bool finished, bool interrupted = false) const {
     if (!root_) return;
     auto fmt = [](double v) {
       char b[32];
@@ -830,16 +835,23 @@ class Job {
       return std::string(b);
     };
     std::string h = "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\n";
-    if (!finished) h += "<meta http-equiv=\"refresh\" content=\"15\">\n";
+    if (!finished && !interrupted) h += "<meta http-equiv=\"refresh\" content=\"15\">\n";
     h += "<title>backlight optimize: " + html_escape(fs::path(c_.file).filename().string()) + "</title>\n";
     h += "<style>body{font-family:sans-serif;margin:2em;max-width:1100px}table{border-collapse:collapse}"
          "td,th{border:1px solid #bbb;padding:4px 10px;text-align:left}figure{display:inline-block;margin:8px;"
          "vertical-align:top}img{max-width:520px;image-rendering:pixelated;border:1px solid #ddd}"
-         "figcaption{font-size:90%;color:#444}</style></head><body>\n";
+         "figcaption{font-size:90%;color:#444}.curves img{image-rendering:auto}</style></head><body>\n";
     h += "<h1>backlight optimize</h1>\n<p>" + html_escape(c_.file) + " &rarr; " + html_escape(c_.output) + "</p>\n";
-    h += "<p><b>" + std::string(finished ? "Finished" : "Running") + "</b>: " + std::to_string(done) + " of " +
-         std::to_string(c_.iterations) + " iterations, " + fmt(seconds) + " s" +
-         (finished ? "" : " (this page reloads every 15 s)") + ".</p>\n";
+    h += "<p><b>" +
+         std::string(finished      ? "Finished"
+                     : interrupted ? "Interrupted"
+                                   : "Running") +
+         "</b>: " + std::to_string(done) + " of " + std::to_string(c_.iterations) + " iterations, " + fmt(seconds) +
+         " s" +
+         (finished      ? ""
+          : interrupted ? " (checkpoint saved: continue with <code>optimize --resume</code>)"
+                        : " (this page reloads every 15 s)") +
+         ".</p>\n";
     h += "<table>\n<tr><th>quantity</th><th>start</th><th>now</th></tr>\n";
     if (!log_.empty())
       h += "<tr><td>loss (" + std::string(loss_name(c_.loss)) + ", " + std::to_string(c_.spp) +
@@ -850,23 +862,29 @@ class Job {
            fmt(validation_.front().loss) + "</td><td>" + fmt(validation_.back().loss) + "</td></tr>\n";
     if (!log_.empty() && log_.front().rmse >= 0)
       h += "<tr><td>RMSE of " + html_escape(c_.params.front().name) + " against the truth</td><td>" +
-           fmt(log_.front().rmse) + "</td><td>" + fmt(log_.back().rmse) + "</td></tr>\n";
+           fmt(initial_rmse_ >= 0 ? initial_rmse_ : log_.front().rmse) + "</td><td>" + fmt(log_.back().rmse) +
+           "</td></tr>\n";
     h += "<tr><td>views</td><td colspan=\"2\">" + std::to_string(cameras_.size()) + " (" +
          std::to_string(c_.views_per_iteration > 0 ? c_.views_per_iteration : int(cameras_.size())) +
          " per iteration), " + std::to_string(c_.spp) + " + " + std::to_string(c_.adjoint_spp) + " spp</td></tr>\n";
-    h += "</table>\n<h2>Curves</h2>\n";
+    // The plots are shown smaller than drawn: pixelated (nearest-neighbour) scaling would drop
+    // their one-pixel strokes (minus signs, grid lines), so only the renders keep it.
+    h += "</table>\n<h2>Curves</h2>\n<div class=\"curves\">\n";
     h += inline_png(out("loss.png"), "loss of each iteration and validation loss");
     h += inline_png(out("param_rmse.png"), "parameter RMSE against the ground truth");
-    h += "<h2>Images</h2>\n";
+    h += "</div>\n<h2>Images</h2>\n";
     h += inline_png(out("compare.png"), "target | initial | final (first view)");
+    const int shown = interrupted ? done - done % c_.snapshot_every : done;  // the last snapshot's
     char tag[32];
-    std::snprintf(tag, sizeof tag, "%05d", done);
-    if (!finished) h += inline_png(out("snapshots/view_" + std::string(tag) + ".png"), "first view of this iteration");
+    std::snprintf(tag, sizeof tag, "%05d", shown);
+    if (!finished)
+      h += inline_png(out("snapshots/view_" + std::string(tag) + ".png"),
+                      "first view after iteration " + std::to_string(shown));
     h += "<h2>Parameters</h2>\n";
     for (const auto& p : c_.params) {
       const std::string file =
           finished ? out("final/" + p.name + ".png") : out("snapshots/" + p.name + "_" + tag + ".png");
-      h += inline_png(file, p.name + (finished ? " (final)" : " (iteration " + std::to_string(done) + ")"));
+      h += inline_png(file, p.name + (finished ? " (final)" : " (iteration " + std::to_string(shown) + ")"));
     }
     h += "</body></html>\n";
     write_text_atomic(out("report.html"), h);
@@ -948,6 +966,7 @@ class Job {
     state["next_iteration"] = next_iteration;
     state["seconds"] = seconds;
     state["initial_loss"] = initial_loss_;
+    state["initial_rmse"] = initial_rmse_;
     json log = json::array();
     for (const auto& r : log_) log.push_back({r.iteration, r.loss, r.seconds, r.rmse});
     state["log"] = log;
@@ -1042,6 +1061,8 @@ class Job {
           validation_.push_back({r.at(0).get<int>(), r.at(1).get<double>(), r.at(2).get<double>()});
       elapsed_before_ = state.at("seconds").get<double>();
       initial_loss_ = state.at("initial_loss").get<double>();
+      if (state.contains("initial_rmse") && state.at("initial_rmse").is_number())
+        initial_rmse_ = state.at("initial_rmse").get<double>();
       scene_->prepare_sampling();
       return state.at("next_iteration").get<int>();
     } catch (const json::exception& e) {

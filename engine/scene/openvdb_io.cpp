@@ -16,10 +16,9 @@
 #include <cstring>
 #include <filesystem>
 
-#include <openvdb/openvdb.h>
-
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/plugins/plugin.h"
 #include "engine/scene/openvdb_reader.h"
 
 extern char** environ;
@@ -29,24 +28,6 @@ namespace bl {
 namespace fs = std::filesystem;
 
 namespace {
-
-template <class GridT>
-typename GridT::Ptr make_grid(const VolumeGrid& g) {
-  auto grid = GridT::create(typename GridT::ValueType(0.f));
-  auto acc = grid->getAccessor();
-  size_t i = 0;
-  for (int z = 0; z < g.z; ++z)
-    for (int y = 0; y < g.y; ++y)
-      for (int x = 0; x < g.x; ++x) {
-        typename GridT::ValueType v;
-        if constexpr (std::is_same_v<GridT, openvdb::FloatGrid>)
-          v = g.data[i++];
-        else
-          v = openvdb::Vec3s(g.data[i], g.data[i + 1], g.data[i + 2]), i += 3;
-        acc.setValueOn(openvdb::Coord(x, y, z), v);
-      }
-  return grid;
-}
 
 // The reader runs in its own process (see openvdb_io.h): a path to it, a private folder for its
 // output, its stderr collected while it runs, and a verdict from its exit status.
@@ -68,7 +49,7 @@ struct PrivateDir {
   std::string path;
   PrivateDir() {  // in $TMPDIR, else /tmp; path stays empty when neither works
     const char* base = std::getenv("TMPDIR");
-    for (const std::string root : {std::string(base && *base ? base : "/tmp"), std::string("/tmp")}) {
+    for (const std::string& root : {std::string(base && *base ? base : "/tmp"), std::string("/tmp")}) {
       std::string pattern = root + "/backlight-vdb-XXXXXX";
       if (::mkdtemp(pattern.data()) != nullptr) {
         path = pattern;
@@ -207,32 +188,14 @@ void write_vdb(const std::string& path, const VolumeGrid& g, const std::string& 
     throw file_error(path, "grid to write has sizes that do not match its values");
   if (!(g.bbox_max.x > g.bbox_min.x && g.bbox_max.y > g.bbox_min.y && g.bbox_max.z > g.bbox_min.z))
     throw file_error(path, "grid to write has an empty or inverted world box");
-  openvdb_initialize_once();
+  const auto& vdb = plugin::openvdb(path, "writing an OpenVDB file");
   const fs::path p(path);
   const std::string tmp =
       (p.parent_path() / ("." + p.stem().string() + ".tmp" + std::to_string(getpid()) + ".vdb")).string();
-  try {
-    openvdb::GridBase::Ptr grid;
-    if (g.channels == 1)
-      grid = make_grid<openvdb::FloatGrid>(g);
-    else
-      grid = make_grid<openvdb::Vec3SGrid>(g);
-    grid->setName(grid_name);
-    // Index i ↦ world centre of voxel i: bbox_min + (i + ½)·voxel size, per axis.
-    const double vx = (double(g.bbox_max.x) - g.bbox_min.x) / g.x, vy = (double(g.bbox_max.y) - g.bbox_min.y) / g.y,
-                 vz = (double(g.bbox_max.z) - g.bbox_min.z) / g.z;
-    openvdb::math::Mat4d m(vx, 0., 0., 0., 0., vy, 0., 0., 0., 0., vz, 0., g.bbox_min.x + 0.5 * vx,
-                           g.bbox_min.y + 0.5 * vy, g.bbox_min.z + 0.5 * vz, 1.);
-    grid->setTransform(openvdb::math::Transform::createLinearTransform(m));
-    grid->setGridClass(openvdb::GRID_FOG_VOLUME);
-    openvdb::io::File file(tmp);
-    file.setCompression(openvdb::io::COMPRESS_ZIP | openvdb::io::COMPRESS_ACTIVE_MASK);
-    file.write({grid});
-    file.close();
-  } catch (const std::exception& e) {
+  if (std::string error; !vdb.write(tmp, g, grid_name, &error)) {
     std::error_code ec;
     fs::remove(tmp, ec);
-    throw file_error(path, std::string("cannot write OpenVDB file (") + e.what() + ")");
+    throw file_error(path, error);
   }
   std::error_code ec;
   fs::rename(tmp, path, ec);

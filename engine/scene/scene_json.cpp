@@ -448,9 +448,19 @@ struct Loader {
     } else if (type == "envmap") {
       env.is_map = true;
       env.scale = float(n.number("scale", 1.0, 0.0, 1e30));
-      json tex = {{"type", "bitmap"}, {"file", n.string("file")}, {"color_space", "linear"}};
+      // "backlight" (nearest texel, u = 0 at +z) or "mitsuba" (Mitsuba 3's envmap: bilinear,
+      // u = 0 at −z; kernels/emitter/envmap.h).
+      const std::string convention = n.string("convention", "backlight");
+      if (convention != "backlight" && convention != "mitsuba")
+        n.fail_at("convention", "expected \"backlight\" or \"mitsuba\"");
+      env.bilinear = convention == "mitsuba";
+      const std::string cs = n.string("color_space", "linear");
+      if (cs != "auto" && cs != "srgb" && cs != "linear") n.fail_at("color_space", "expected \"srgb\" or \"linear\"");
+      json tex = {{"type", "bitmap"}, {"file", n.string("file")}, {"color_space", cs}};
       TextureSlot slot = texturable(tex, n.pointer("file"), "environment", "radiance", false, 0.f, 1e30f);
       env.param = slot.param;
+      if (env.bilinear && scene.params[env.param].height() < 2)
+        n.fail_at("file", "the mitsuba convention needs an image at least 2 pixels high");
     } else {
       n.fail_at("type", "unknown environment type '" + type + "' (expected constant or envmap)");
     }

@@ -3,9 +3,9 @@
 // Supported: <default>/$name substitution, id/<ref>, shapes obj, ply, rectangle, cube, sphere
 // (tessellated), to_world (matrix, lookat, translate, rotate, scale in document order), bsdfs
 // diffuse, roughconductor (eta/k → Schlick), conductor, roughplastic, plastic, twosided, null,
-// textures bitmap, emitters area and constant, sensor perspective with film hdrfilm and a sampler,
-// integrators path/prb/volpath/prbvolpath. Anything else is an error naming the plugin and its
-// line; attributes that do not change the image (file formats, far_clip, …) give one warning.
+// textures bitmap, emitters area, constant and envmap (identity to_world), sensor perspective with film hdrfilm and a
+// sampler, integrators path/prb/volpath/prbvolpath. Anything else is an error naming the plugin and its line;
+// attributes that do not change the image (file formats, far_clip, …) give one warning.
 #include <pugixml.hpp>
 
 #include <cmath>
@@ -606,13 +606,31 @@ class XmlScene {
 
   void environment(const pugi::xml_node& n) {
     const std::string type = plugin_type(n);
-    if (type == "envmap")
-      fail(n,
-           "envmap emitters are not supported in XML scenes yet (their lookup convention differs; use a JSON "
-           "scene's environment)");
-    if (type != "constant") fail(n, "unsupported emitter at the top level (constant only)");
+    if (type != "constant" && type != "envmap") fail(n, "unsupported emitter at the top level (constant or envmap)");
     if (root_.contains("environment")) fail(n, "a second environment emitter");
     Props p = props(n);
+    if (type == "envmap") {
+      // Mitsuba's lookup (bilinear, u = 0 at −z) is the environment's "mitsuba" convention; its
+      // bitmap is radiance, 8-bit files sRGB-decoded.
+      if (!has(p, "filename")) fail(n, "envmap needs a filename");
+      json env = {{"type", "envmap"},
+                  {"file", get_string(p, "filename", "")},
+                  {"convention", "mitsuba"},
+                  {"color_space", "auto"},
+                  {"scale", get_number(p, "scale", 1.0)}};
+      if (has(p, "to_world")) {
+        const pugi::xml_node t = get(p, "to_world");
+        const Transform m = transform(t);
+        for (int i = 0; i < 4; ++i)
+          for (int j = 0; j < 4; ++j)
+            if (std::abs(m.m[i][j] - (i == j ? 1.f : 0.f)) > 1e-6f)
+              fail(t, "envmap to_world must be the identity (rotated environments are not supported)");
+      }
+      for (const pugi::xml_node& x : p.objects) fail(x, "unexpected element in an emitter");
+      finish(n, p, {"mis_compensation"});
+      root_["environment"] = env;
+      return;
+    }
     json radiance = texturable(n, p, "radiance", 1.0);
     if (radiance.is_object()) fail(n, "a textured constant emitter is not supported");
     if (radiance.is_number()) radiance = json::array({radiance, radiance, radiance});

@@ -57,11 +57,49 @@ size_t Environment::texel_index(const Vec3f& dir) const {
   return size_t(row) * size_t(width) + size_t(col);
 }
 
+std::pair<int, int> Environment::cell_of(const Vec3f& dir, float* fx, float* fy) const {
+  const Vec2f uv = direction_to_uv(dir);
+  float u = uv.x - 0.5f;
+  if (u < 0.f) u += 1.f;
+  const float x = u * float(width), y = uv.y * float(height - 1);
+  const int col = std::clamp(int(x), 0, width - 1), row = std::clamp(int(y), 0, height - 2);
+  if (fx) *fx = std::clamp(x - float(col), 0.f, 1.f);
+  if (fy) *fy = std::clamp(y - float(row), 0.f, 1.f);
+  return {row, col};
+}
+
+Environment::Taps Environment::bilinear_taps(const Vec3f& dir) const {
+  float fx, fy;
+  const auto [row, col] = cell_of(dir, &fx, &fy);
+  const size_t c0 = size_t(col), c1 = size_t((col + 1) % width), r0 = size_t(row) * size_t(width),
+               r1 = r0 + size_t(width);
+  return {{r0 + c0, r0 + c1, r1 + c0, r1 + c1}, {(1.f - fx) * (1.f - fy), fx * (1.f - fy), (1.f - fx) * fy, fx * fy}};
+}
+
 void Environment::prepare(const ParamStore& s) {
   if (!present || !is_map) return;
   const Param& p = s[param];
   width = p.width();
   height = p.height();
+  if (bilinear) {
+    // Cells between four samples: H − 1 rows of W (the last wraps to column 0).
+    auto lum = [&](int r, int c) {
+      const size_t b = (size_t(r) * size_t(width) + size_t(c % width)) * 3;
+      return std::max(0.0, double(luminance({p.value[b], p.value[b + 1], p.value[b + 2]})));
+    };
+    std::vector<double> row_weights(size_t(height - 1), 0.0);
+    cols.assign(size_t(height - 1), {});
+    std::vector<double> w(static_cast<size_t>(width));
+    for (int r = 0; r + 1 < height; ++r) {
+      const double sin_theta = std::sin((double(r) + 0.5) / double(height - 1) * M_PI);
+      for (int c = 0; c < width; ++c)
+        w[size_t(c)] = std::max({lum(r, c), lum(r, c + 1), lum(r + 1, c), lum(r + 1, c + 1)}) * sin_theta;
+      cols[size_t(r)].build(w);
+      row_weights[size_t(r)] = cols[size_t(r)].total;
+    }
+    rows.build(row_weights);
+    return;
+  }
   std::vector<double> row_weights(size_t(height), 0.0);
   cols.assign(size_t(height), {});
   std::vector<double> w(static_cast<size_t>(width));
@@ -91,6 +129,10 @@ EmitterSample Environment::sample(Vec2f u) const {
   int row = rows.sample(u.y, &uy);
   int col = cols[size_t(row)].sample(u.x, &ux);
   Vec2f uv{(float(col) + ux) / float(width), (float(row) + uy) / float(height)};
+  if (bilinear) {  // the cell's u' = u − ½ and v = row / (H − 1)
+    uv = {(float(col) + ux) / float(width) + 0.5f, (float(row) + uy) / float(height - 1)};
+    if (uv.x >= 1.f) uv.x -= 1.f;
+  }
   s.wi = uv_to_direction(uv);
   s.uv = uv;
   s.pdf = pdf(s.wi);
@@ -99,11 +141,12 @@ EmitterSample Environment::sample(Vec2f u) const {
 
 float Environment::pdf(const Vec3f& dir) const {
   if (!is_map) return 1.f / (4.f * kPi);
-  auto [row, col] = texel_of(dir);
+  auto [row, col] = bilinear ? cell_of(dir) : texel_of(dir);
   // sqrt(x² + z²), not sqrt(1 − y²): the latter rounds to 0 within ~3e-4 rad of the poles.
   float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
   if (sin_theta <= 0.f) return 0.f;
-  float p_uv = rows.pmf[size_t(row)] * cols[size_t(row)].pmf[size_t(col)] * float(width) * float(height);
+  float p_uv =
+      rows.pmf[size_t(row)] * cols[size_t(row)].pmf[size_t(col)] * float(width) * float(bilinear ? height - 1 : height);
   return p_uv / (2.f * kPi * kPi * sin_theta);
 }
 

@@ -7,6 +7,14 @@
 // zenith. A texel is constant over its (u, v) cell (nearest lookup), so sampling a texel with
 // probability ∝ luminance · sin θ and then uniformly in its cell gives a pdf proportional to the
 // emitted luminance: the sampler is exact, which the chi-square test checks.
+//
+// `bilinear` is Mitsuba 3's `envmap` convention (scenes read from Mitsuba XML): texel (row r,
+// column c) is a sample at u' = c/W, v = r/(H−1) with u' = atan2(d.x, −d.z)/(2π) wrapped to
+// [0, 1) (= u − ½), and radiance is interpolated bilinearly between the four samples around d
+// (columns wrap, rows 0 and H−1 lie on the poles; H ≥ 2). Sampling picks a cell between four
+// samples with probability ∝ max of their luminances · sin θ, then a point uniformly in it: the
+// pdf is positive wherever the radiance is (an upper bound, not proportional like Mitsuba's
+// bilinear warp, so somewhat noisier on sharp maps), and exact for the sample/pdf pair.
 #include <utility>
 #include <vector>
 
@@ -30,6 +38,7 @@ struct Environment {
   bool is_map = false;
   int param = -1;  // environment.radiance
   float scale = 1.f;
+  bool bilinear = false;  // Mitsuba 3's lookup (see above)
   int width = 1, height = 1;
   Distribution1D rows;               // marginal over rows
   std::vector<Distribution1D> cols;  // conditional over columns in each row
@@ -41,6 +50,16 @@ struct Environment {
   Spectrum<T> eval(const ParamStore& s, const Vec3f& dir) const {
     const Param& p = s[param];
     if (!is_map) return constant_eval<T>(p) * scale;
+    if (bilinear) {
+      const Taps taps = bilinear_taps(dir);
+      Spectrum<T> sum(T(0.f));
+      for (int k = 0; k < 4; ++k) {
+        const size_t b = taps.texel[k] * 3;
+        sum += Spectrum<T>{ParamLoad<T>::load(p, b), ParamLoad<T>::load(p, b + 1), ParamLoad<T>::load(p, b + 2)} *
+               taps.weight[k];
+      }
+      return sum * scale;
+    }
     size_t base = texel_index(dir) * 3;
     return Spectrum<T>{ParamLoad<T>::load(p, base), ParamLoad<T>::load(p, base + 1), ParamLoad<T>::load(p, base + 2)} *
            scale;
@@ -51,6 +70,13 @@ struct Environment {
       constant_backprop(s[param], param, adjoint * scale, grads);
       return;
     }
+    if (bilinear) {
+      const Taps taps = bilinear_taps(dir);
+      for (int k = 0; k < 4; ++k)
+        for (int c = 0; c < 3; ++c)
+          grads.add(param, taps.texel[k] * 3 + size_t(c), adjoint[c] * (scale * taps.weight[k]));
+      return;
+    }
     size_t base = texel_index(dir) * 3;
     for (int c = 0; c < 3; ++c) grads.add(param, base + size_t(c), adjoint[c] * scale);
   }
@@ -58,6 +84,14 @@ struct Environment {
   float pdf(const Vec3f& dir) const;
 
   size_t texel_index(const Vec3f& dir) const;
+  // The bilinear lookup: four texels and their weights (summing to 1).
+  struct Taps {
+    size_t texel[4];
+    float weight[4];
+  };
+  Taps bilinear_taps(const Vec3f& dir) const;
+  // The bilinear mode's sampling cell (row, col) around dir, and its continuous sample position.
+  std::pair<int, int> cell_of(const Vec3f& dir, float* fx = nullptr, float* fy = nullptr) const;
   std::pair<int, int> texel_of(const Vec3f& dir) const;  // (row, col) of the texel seen along dir
   static Vec2f direction_to_uv(const Vec3f& d);
   static Vec3f uv_to_direction(Vec2f uv);

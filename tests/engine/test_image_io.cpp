@@ -3,6 +3,7 @@
 // with a one-line InputError before any OpenImageIO plugin sees them.
 #include <OpenImageIO/imageio.h>
 #include <unistd.h>
+#include <zlib.h>
 #include <catch2/catch.hpp>
 
 #include <cmath>
@@ -217,4 +218,167 @@ TEST_CASE("image metadata is never parsed: hostile Exif, IPTC, XMP and ICC segme
     CHECK(perr.find("cut.png") != std::string::npos);
     CHECK(perr.find('\n') == std::string::npos);
   }
+}
+
+// EXR and PNG are decoded by OpenEXR and libpng directly (no OpenImageIO); the layouts real files
+// use, written here by OpenImageIO (a different writer than ours) or by hand.
+TEST_CASE("OpenEXR layouts: data window, Y, half, extra layers, subsampling", "[image][io]") {
+  TempDir tmp;
+  auto write = [&](const std::string& name, OIIO::ImageSpec spec, const std::vector<float>& px) {
+    auto out = OIIO::ImageOutput::create(tmp(name));
+    REQUIRE(out);
+    REQUIRE(out->open(tmp(name), spec));
+    REQUIRE(out->write_image(OIIO::TypeDesc::FLOAT, px.data()));
+    out->close();
+  };
+  SECTION("a data window away from the origin, half floats, alpha and another layer") {
+    OIIO::ImageSpec spec(5, 4, 5, OIIO::TypeDesc::HALF);
+    spec.x = 7, spec.y = -3, spec.full_width = 20, spec.full_height = 20;
+    spec.channelnames = {"R", "G", "B", "A", "depth.Z"};
+    spec.alpha_channel = 3;
+    std::vector<float> px(5 * 4 * 5);
+    for (size_t i = 0; i < px.size(); ++i) px[i] = float(i % 97) * 0.25f;
+    write("window.exr", spec, px);
+    const Image back = read_image(tmp("window.exr"), true);  // float files are never sRGB-decoded
+    REQUIRE(back.width == 5);
+    REQUIRE(back.height == 4);
+    REQUIRE(back.channels == 3);
+    CHECK(back.from_float_file);
+    for (int y = 0; y < 4; ++y)
+      for (int x = 0; x < 5; ++x)
+        for (int c = 0; c < 3; ++c) CHECK(back.at(x, y, c) == px[(size_t(y) * 5 + size_t(x)) * 5 + size_t(c)]);
+  }
+  SECTION("one channel Y") {
+    OIIO::ImageSpec spec(3, 2, 1, OIIO::TypeDesc::FLOAT);
+    spec.channelnames = {"Y"};
+    write("y.exr", spec, {1, 2, 3, 4, 5, 6.5f});
+    const Image back = read_image(tmp("y.exr"), false);
+    REQUIRE(back.channels == 1);
+    CHECK(back.data == std::vector<float>{1, 2, 3, 4, 5, 6.5f});
+  }
+  SECTION("NaN is refused with the pixel") {
+    OIIO::ImageSpec spec(2, 2, 3, OIIO::TypeDesc::FLOAT);
+    std::vector<float> px(12, 0.5f);
+    px[3 * 3 + 1] = std::nanf("");
+    write("nan.exr", spec, px);
+    CHECK(error_of(tmp("nan.exr")).find("nan.exr: pixel (1, 1) is not a finite number") != std::string::npos);
+  }
+  SECTION("a truncated file is a one-line error") {
+    write_image(tmp("full.exr"), gradient_image());
+    std::vector<unsigned char> bytes = file_bytes(tmp("full.exr"));
+    bytes.resize(bytes.size() - 40);
+    put_file(tmp("cut.exr"), bytes);
+    const std::string e = error_of(tmp("cut.exr"));
+    CHECK(e.find("cut.exr: corrupt image") != std::string::npos);
+    CHECK(e.find('\n') == std::string::npos);
+  }
+}
+
+TEST_CASE("PNG layouts: 16-bit, grey, alpha, palette (by hand), interlaced", "[image][io]") {
+  TempDir tmp;
+  auto write = [&](const std::string& name, OIIO::ImageSpec spec, OIIO::TypeDesc type, const void* px) {
+    auto out = OIIO::ImageOutput::create(tmp(name));
+    REQUIRE(out);
+    REQUIRE(out->open(tmp(name), spec));
+    REQUIRE(out->write_image(type, px));
+    out->close();
+  };
+  SECTION("16-bit RGB keeps its precision") {
+    std::vector<uint16_t> px(4 * 3 * 3);
+    for (size_t i = 0; i < px.size(); ++i) px[i] = uint16_t(i * 1811 + 7);
+    write("16.png", OIIO::ImageSpec(4, 3, 3, OIIO::TypeDesc::UINT16), OIIO::TypeDesc::UINT16, px.data());
+    const Image back = read_image(tmp("16.png"), false);
+    REQUIRE(back.channels == 3);
+    CHECK_FALSE(back.from_float_file);
+    for (size_t i = 0; i < px.size(); ++i) CHECK(back.data[i] == float(px[i]) / 65535.f);
+    const Image srgb = read_image(tmp("16.png"), true);
+    CHECK(srgb.data[5] == srgb_to_linear(float(px[5]) / 65535.f));
+  }
+  SECTION("grey is one channel; alpha is not read (the colour as stored)") {
+    const std::vector<unsigned char> grey = {0, 51, 102, 255};
+    write("grey.png", OIIO::ImageSpec(2, 2, 1, OIIO::TypeDesc::UINT8), OIIO::TypeDesc::UINT8, grey.data());
+    const Image g = read_image(tmp("grey.png"), false);
+    REQUIRE(g.channels == 1);
+    CHECK(g.data == std::vector<float>{0.f, 0.2f, 0.4f, 1.f});
+    const std::vector<unsigned char> rgba = {255, 128, 0, 0, 10, 20, 30, 255};
+    OIIO::ImageSpec spec(2, 1, 4, OIIO::TypeDesc::UINT8);
+    spec.attribute("oiio:UnassociatedAlpha", 1);
+    write("rgba.png", spec, OIIO::TypeDesc::UINT8, rgba.data());
+    const Image c = read_image(tmp("rgba.png"), false);
+    REQUIRE(c.channels == 3);
+    CHECK(c.data == std::vector<float>{1.f, 128 / 255.f, 0.f, 10 / 255.f, 20 / 255.f, 30 / 255.f});
+  }
+  SECTION("a palette image with 2-bit indices, interlaced (Adam7), built by hand") {
+    // 3×2 pixels, palette {red, green, blue, white}; each row: filter byte 0, then 2-bit indices.
+    const unsigned char rows[] = {0, 0b00011000, 0, 0b11100000};  // row 0: 0 1 2; row 1: 3 2 0
+    std::string idat;
+    {
+      uLongf n = compressBound(sizeof(rows));
+      std::vector<unsigned char> z(n);
+      REQUIRE(compress(z.data(), &n, rows, sizeof(rows)) == Z_OK);
+      idat.assign(reinterpret_cast<const char*>(z.data()), n);
+    }
+    auto chunk = [](const std::string& type, const std::string& data) {
+      std::string c(4, '\0');
+      const uint32_t len = uint32_t(data.size());
+      for (int i = 0; i < 4; ++i) c[size_t(i)] = char(len >> (24 - 8 * i));
+      const std::string body = type + data;
+      uint32_t crc = uint32_t(crc32(0, reinterpret_cast<const Bytef*>(body.data()), uInt(body.size())));
+      c += body;
+      for (int i = 0; i < 4; ++i) c += char(crc >> (24 - 8 * i));
+      return c;
+    };
+    const std::string ihdr = std::string("\0\0\0\3\0\0\0\2\2\3\0\0\0", 13);  // 3×2, depth 2, palette
+    const std::string plte = std::string("\xff\0\0\0\xff\0\0\0\xff\xff\xff\xff", 12);
+    const std::string png = std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", ihdr) + chunk("PLTE", plte) +
+                            chunk("IDAT", idat) + chunk("IEND", "");
+    std::ofstream(tmp("palette.png"), std::ios::binary) << png;
+    const Image p = read_image(tmp("palette.png"), false);
+    REQUIRE(p.width == 3);
+    REQUIRE(p.height == 2);
+    REQUIRE(p.channels == 3);
+    CHECK(p.data == std::vector<float>{1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, 1, 0, 0, 1, 1, 0, 0});
+    // The same image interlaced, written by OpenImageIO (libpng): identical pixels.
+    OIIO::ImageSpec spec(3, 2, 3, OIIO::TypeDesc::UINT8);
+    spec.attribute("png:interlace", 1);
+    std::vector<unsigned char> px(18);
+    for (size_t i = 0; i < 18; ++i) px[i] = (unsigned char)std::lround(p.data[i] * 255.f);
+    write("adam7.png", spec, OIIO::TypeDesc::UINT8, px.data());
+    CHECK(read_image(tmp("adam7.png"), false).data == p.data);
+  }
+  SECTION("a truncated file is a one-line error") {
+    write_image(tmp("full.png"), gradient_image());
+    std::vector<unsigned char> bytes = file_bytes(tmp("full.png"));
+    bytes.resize(bytes.size() / 2);
+    put_file(tmp("cut.png"), bytes);
+    const std::string e = error_of(tmp("cut.png"));
+    CHECK(e.find("cut.png: corrupt image") != std::string::npos);
+    CHECK(e.find('\n') == std::string::npos);
+  }
+}
+
+TEST_CASE("PFM: both byte orders, grey, bottom-up rows, short files", "[image][io]") {
+  TempDir tmp;
+  auto pfm = [&](const std::string& name, const std::string& header, std::vector<float> values, bool big) {
+    std::string body(reinterpret_cast<const char*>(values.data()), values.size() * 4);
+    if (big)
+      for (size_t i = 0; i < body.size(); i += 4) std::swap(body[i], body[i + 3]), std::swap(body[i + 1], body[i + 2]);
+    std::ofstream(tmp(name), std::ios::binary) << header << body;
+  };
+  // Stored bottom row first: the file's first row is the image's last.
+  pfm("be.pfm", "Pf\n2 2\n1.0\n", {1, 2, 3, 4}, true);
+  pfm("le.pfm", "Pf 2 2 -1\n", {1, 2, 3, 4}, false);
+  for (const char* name : {"be.pfm", "le.pfm"}) {
+    CAPTURE(name);
+    const Image g = read_image(tmp(name), true);
+    REQUIRE(g.channels == 1);
+    CHECK(g.from_float_file);
+    CHECK(g.data == std::vector<float>{3, 4, 1, 2});
+  }
+  pfm("short.pfm", "PF\n4 4\n-1.0\n", {1, 2, 3}, false);
+  CHECK(error_of(tmp("short.pfm")).find("short.pfm: corrupt image (PFM file shorter") != std::string::npos);
+  pfm("huge.pfm", "PF\n1000000000 1000000000\n-1.0\n", {1, 2, 3}, false);
+  CHECK(error_of(tmp("huge.pfm")).find("huge.pfm:") != std::string::npos);
+  pfm("zero.pfm", "PF\n0 4\n-1.0\n", {1, 2, 3}, false);
+  CHECK(error_of(tmp("zero.pfm")).find("zero.pfm: corrupt image (PFM header") != std::string::npos);
 }

@@ -137,6 +137,15 @@ TEST_CASE("a tiny optimization cuts the loss at least 10x", "[optimizer]") {
     ++images;
   }
   CHECK(images == 4);  // loss, parameter RMSE, comparison, final texture
+  // The table's RMSE "start" is the RMSE before the first update: the summary's rmse_initial.
+  {
+    const std::string row = "against the truth</td><td>";
+    const size_t at = report.find(row);
+    REQUIRE(at != std::string::npos);
+    const double start = std::stod(report.substr(at + row.size(), 20));
+    const double initial = summary["parameters"]["floor.albedo"]["rmse_initial"];
+    CHECK(start == Approx(initial).epsilon(1e-3));
+  }
   for (const char* f : {"loss.csv", "validation.csv", "loss.png", "report.html", "param_rmse.png", "compare.png",
                         "summary.json", "final/floor.albedo.exr", "final/floor.albedo.png",
                         "snapshots/floor.albedo_00050.png", "checkpoint/state.json"})

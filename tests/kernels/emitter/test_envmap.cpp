@@ -3,6 +3,7 @@
 // shader against central differences of Environment::eval<double> per texel.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <vector>
@@ -38,10 +39,11 @@ Param structured_map(bool black_lower_half) {
   return p;
 }
 
-Environment make_environment(ParamStore& store, Param radiance, bool is_map, float scale) {
+Environment make_environment(ParamStore& store, Param radiance, bool is_map, float scale, bool bilinear = false) {
   Environment env;
   env.present = true;
   env.is_map = is_map;
+  env.bilinear = bilinear;
   env.param = store.add(std::move(radiance));
   env.scale = scale;
   env.prepare(store);
@@ -52,8 +54,9 @@ Chi2Result chi2_environment(const Environment& env, const std::string& label, ui
   Chi2Options opt;
   opt.label = label;
   opt.seed = seed;
-  // Two bins per texel along each axis, aligned with the texel grid.
-  opt.theta_bins = 2 * kHeight;
+  // Two bins per texel (bilinear: per cell between samples) along each axis, aligned with them:
+  // the expected counts integrate a pdf that jumps at their borders.
+  opt.theta_bins = 2 * (env.bilinear ? kHeight - 1 : kHeight);
   opt.phi_bins = 2 * kWidth;
   return chi2_test(
       latlong_sphere(),
@@ -101,19 +104,21 @@ void check_environment_backprop(ParamStore& store, const Environment& env, const
 }  // namespace
 
 TEST_CASE("environment map sampler matches its pdf (chi-square)", "[emitter][envmap][chi2]") {
-  for (bool black_lower_half : {false, true}) {
-    ParamStore store;
-    const Environment env = make_environment(store, structured_map(black_lower_half), true, 1.5f);
-    const std::string label =
-        std::string("32x16 map with a sun") + (black_lower_half ? ", black below the horizon" : "");
-    const Chi2Result r = chi2_environment(env, label, black_lower_half ? 7 : 6);
-    INFO(r.report);
-    CHECK(r.passed(1e-3));
-    CHECK(r.pdf_integral == Approx(1.0).epsilon(1e-4));
-    // The sampler never loses a sample: every generated direction has a positive pdf, including
-    // directions within ~3e-4 rad of the poles where dir.y rounds to ±1 in float.
-    CHECK(r.accepted_fraction == 1.0);
-  }
+  for (bool bilinear : {false, true})
+    for (bool black_lower_half : {false, true}) {
+      ParamStore store;
+      const Environment env = make_environment(store, structured_map(black_lower_half), true, 1.5f, bilinear);
+      const std::string label = std::string("32x16 map with a sun") +
+                                (black_lower_half ? ", black below the horizon" : "") +
+                                (bilinear ? ", Mitsuba's bilinear lookup" : "");
+      const Chi2Result r = chi2_environment(env, label, (black_lower_half ? 7 : 6) + (bilinear ? 10 : 0));
+      INFO(r.report);
+      CHECK(r.passed(1e-3));
+      CHECK(r.pdf_integral == Approx(1.0).epsilon(1e-4));
+      // The sampler never loses a sample: every generated direction has a positive pdf, including
+      // directions within ~3e-4 rad of the poles where dir.y rounds to ±1 in float.
+      CHECK(r.accepted_fraction == 1.0);
+    }
 }
 
 TEST_CASE("constant environment sampler matches its pdf (chi-square)", "[emitter][envmap][chi2]") {
@@ -130,15 +135,20 @@ TEST_CASE("constant environment sampler matches its pdf (chi-square)", "[emitter
 }
 
 TEST_CASE("environment map pdf integrates to one", "[emitter][envmap][pdf]") {
-  for (bool black_lower_half : {false, true}) {
-    ParamStore store;
-    const Environment env = make_environment(store, structured_map(black_lower_half), true, 1.f);
-    // Integration cells aligned with the texels, inside which pdf · sin θ is constant.
-    const double integral = integrate_over_domain(
-        latlong_sphere(), [&](const Vec3f& w) { return env.pdf(w); }, 1e-6, kHeight, kWidth);
-    INFO("black lower half: " << black_lower_half);
-    CHECK(integral == Approx(1.0).epsilon(1e-5));
-  }
+  for (bool bilinear : {false, true})
+    for (bool black_lower_half : {false, true}) {
+      ParamStore store;
+      const Environment env = make_environment(store, structured_map(black_lower_half), true, 1.f, bilinear);
+      // Integration cells aligned with the texels (the bilinear mode's cells: H − 1 rows between
+      // sample rows, columns shifted by half a turn), inside which pdf · sin θ is constant.
+      const double integral =
+          bilinear ? integrate_over_domain(
+                         latlong_sphere(), [&](const Vec3f& w) { return env.pdf(w); }, 1e-6, kHeight - 1, 2 * kWidth)
+                   : integrate_over_domain(
+                         latlong_sphere(), [&](const Vec3f& w) { return env.pdf(w); }, 1e-6, kHeight, kWidth);
+      INFO("black lower half: " << black_lower_half << ", bilinear " << bilinear);
+      CHECK(integral == Approx(1.0).epsilon(1e-5));
+    }
 }
 
 TEST_CASE("environment map pdf is proportional to luminance", "[emitter][envmap][pdf]") {
@@ -161,10 +171,10 @@ TEST_CASE("environment map pdf is proportional to luminance", "[emitter][envmap]
 
 TEST_CASE("environment backprop matches finite differences of eval", "[emitter][envmap][backprop]") {
   TestRng rng(51);
-  {
+  for (bool bilinear : {false, true}) {
     ParamStore store;
-    const Environment env = make_environment(store, structured_map(false), true, 1.5f);
-    check_environment_backprop(store, env, "32x16 map", rng);
+    const Environment env = make_environment(store, structured_map(false), true, 1.5f, bilinear);
+    check_environment_backprop(store, env, bilinear ? "32x16 map, bilinear" : "32x16 map", rng);
   }
   for (int size : {1, 3}) {
     ParamStore store;
@@ -175,4 +185,53 @@ TEST_CASE("environment backprop matches finite differences of eval", "[emitter][
     const Environment env = make_environment(store, radiance, false, 0.7f);
     check_environment_backprop(store, env, "constant of size " + std::to_string(size), rng);
   }
+}
+
+// Mitsuba 3's envmap lookup, written out independently of envmap.cpp: u = atan2(d.x, −d.z)/(2π)
+// wrapped to [0, 1), v = acos(d.y)/π, then bilinear interpolation at (u·W, v·(H−1)) in the
+// bitmap extended by a copy of its first column (Mitsuba's envmap.cpp). The bilinear mode must
+// agree everywhere, and its texel samples sit exactly at their directions.
+TEST_CASE("the bilinear mode is Mitsuba 3's envmap lookup", "[emitter][envmap]") {
+  ParamStore store;
+  const Param map = structured_map(false);
+  const Environment env = make_environment(store, map, true, 1.f, true);
+  auto mitsuba = [&](const Vec3f& d) {
+    double u = std::atan2(double(d.x), -double(d.z)) / (2 * M_PI);
+    u -= std::floor(u);
+    const double v = std::acos(std::clamp(double(d.y), -1.0, 1.0)) / M_PI;
+    const double x = u * kWidth, y = v * (kHeight - 1);
+    const int x0 = std::min(int(x), kWidth - 1), y0 = std::min(int(y), kHeight - 2);
+    const double fx = x - x0, fy = y - y0;
+    auto texel = [&](int r, int c, int ch) {
+      return double(map.value[(size_t(r) * kWidth + size_t(c % kWidth)) * 3 + size_t(ch)]);
+    };
+    Vec3d out;
+    for (int ch = 0; ch < 3; ++ch)
+      out[ch] = (1 - fx) * (1 - fy) * texel(y0, x0, ch) + fx * (1 - fy) * texel(y0, x0 + 1, ch) +
+                (1 - fx) * fy * texel(y0 + 1, x0, ch) + fx * fy * texel(y0 + 1, x0 + 1, ch);
+    return out;
+  };
+  TestRng rng(77);
+  std::vector<Vec3f> dirs = lookup_directions(rng);
+  for (int i = 0; i < 200; ++i) {
+    const double z = rng.uniform(-1, 1), phi = rng.uniform(0, 2 * M_PI), r = std::sqrt(1 - z * z);
+    dirs.push_back(Vec3f(float(r * std::cos(phi)), float(z), float(r * std::sin(phi))));
+  }
+  for (const Vec3f& d : dirs) {
+    const Spectrum<double> ours = env.eval<double>(store, d);
+    const Vec3d ref = mitsuba(d);
+    INFO("direction (" << d.x << ", " << d.y << ", " << d.z << ")");
+    for (int ch = 0; ch < 3; ++ch) CHECK(ours[ch] == Approx(ref[ch]).epsilon(2e-4).margin(1e-4));
+  }
+  // Texel (row 5, column 20) — the sun's centre — is seen exactly along its direction:
+  // φ = 2π·20/W from −z towards +x, θ = π·5/(H−1).
+  const double phi = 2 * M_PI * 20 / kWidth, theta = M_PI * 5 / (kHeight - 1);
+  const Vec3f sun(float(std::sin(theta) * std::sin(phi)), float(std::cos(theta)),
+                  float(-std::sin(theta) * std::cos(phi)));
+  const Spectrum<double> at_sun = env.eval<double>(store, sun);
+  CHECK(at_sun[0] == Approx(map.value[(5 * kWidth + 20) * 3]).epsilon(1e-4));
+  // Negative control: the nearest lookup of the same map differs there (its u origin is +z).
+  ParamStore other;
+  const Environment nearest = make_environment(other, map, true, 1.f, false);
+  CHECK(std::abs(nearest.eval<double>(other, sun)[0] - at_sun[0]) > 1.0);
 }
