@@ -30,7 +30,9 @@ job out > out.json
 run_once() {  # run_once [ENV...]: one start or resume of the interrupted job
   local args=(optimize out.json --threads 1 --quiet)
   [ -f out/checkpoint/state.json ] || [ -f out/checkpoint.old/state.json ] && args+=(--resume out)
-  env "$@" "$bin" "${args[@]}" 2>> out.log
+  # In the background (RUN_EXEC=1) the subshell becomes backlight, so that kill -9 $! reaches it
+  # (killing the subshell alone left backlight running beside the next run).
+  ${RUN_EXEC:+exec} env "$@" "$bin" "${args[@]}" 2>> out.log
 }
 # 1. Crash at every point of the checkpoint swap, in turn, each on a later checkpoint.
 for point in checkpoint-written old-removed final-moved tmp-renamed checkpoint-written final-moved \
@@ -43,15 +45,23 @@ for point in checkpoint-written old-removed final-moved tmp-renamed checkpoint-w
   [ $had -eq 0 ] || [ -f out/checkpoint/state.json ] || [ -f out/checkpoint.old/state.json ] ||
     fail "after a crash at $point no complete checkpoint is left: $(ls out)"
 done
+still_running() {  # whether a backlight process of this job is alive (no procps needed)
+  local f
+  for f in /proc/[0-9]*/cmdline; do
+    tr '\0' ' ' < "$f" 2> /dev/null | grep -qF "$bin optimize out.json" && return 0
+  done
+  return 1
+}
 # 2. Plain kill -9 at arbitrary moments, with temporaries of dead processes planted.
 for delay in 0.3 0.7 0.5; do
   mkdir -p out/snapshots
   : > out/.loss.tmp999999.csv
   : > out/snapshots/.floor.albedo_00004.tmp999998.png
-  run_once & pid=$!
+  RUN_EXEC=1 run_once & pid=$!
   sleep "$delay"
   kill -9 $pid 2>/dev/null
   wait $pid 2>/dev/null
+  still_running && fail "a killed optimize is still running"
 done
 # One run to the end whatever state the kills left (a resume of a finished run finishes at once;
 # a kill may have come before a run reached its clean-up), then more if a kill left it unfinished.
