@@ -4,6 +4,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <filesystem>
@@ -294,19 +295,30 @@ std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, cons
   return out;
 }
 
+// The textures of a material backlight reads, with their names for messages.
+std::vector<std::pair<const char*, const tinygltf::TextureInfo*>> material_textures(const tinygltf::Material& gm) {
+  std::vector<std::pair<const char*, const tinygltf::TextureInfo*>> used;
+  if (gm.pbrMetallicRoughness.baseColorTexture.index >= 0)
+    used.push_back({"base colour", &gm.pbrMetallicRoughness.baseColorTexture});
+  if (gm.emissiveTexture.index >= 0) used.push_back({"emissive", &gm.emissiveTexture});
+  if (gm.pbrMetallicRoughness.metallicRoughnessTexture.index >= 0)
+    used.push_back({"metallic-roughness", &gm.pbrMetallicRoughness.metallicRoughnessTexture});
+  return used;
+}
+
 // The uv set (TEXCOORD_n) a material's textures read. backlight meshes carry one uv set, so the
-// base colour and emissive textures of one material must agree on it.
+// base colour, emissive and metallic-roughness textures of one material must agree on it.
 int material_tex_coord(const tinygltf::Model& model, int material, const std::string& path) {
   if (material < 0 || size_t(material) >= model.materials.size()) return 0;
   const auto& gm = model.materials[size_t(material)];
-  const auto& base = gm.pbrMetallicRoughness.baseColorTexture;
-  const auto& emissive = gm.emissiveTexture;
-  if (base.index >= 0 && emissive.index >= 0 && base.texCoord != emissive.texCoord)
-    throw file_error(path, "material '" + gm.name.substr(0, 100) +
-                               "': base colour and emissive textures use different uv sets (TEXCOORD_" +
-                               std::to_string(base.texCoord) + ", TEXCOORD_" + std::to_string(emissive.texCoord) +
-                               "); backlight meshes carry one");
-  const int set = base.index >= 0 ? base.texCoord : emissive.index >= 0 ? emissive.texCoord : 0;
+  const auto used = material_textures(gm);
+  for (size_t i = 1; i < used.size(); ++i)
+    if (used[i].second->texCoord != used[0].second->texCoord)
+      throw file_error(path, "material '" + gm.name.substr(0, 100) + "': " + used[0].first + " and " + used[i].first +
+                                 " textures use different uv sets (TEXCOORD_" +
+                                 std::to_string(used[0].second->texCoord) + ", TEXCOORD_" +
+                                 std::to_string(used[i].second->texCoord) + "); backlight meshes carry one");
+  const int set = used.empty() ? 0 : used[0].second->texCoord;
   if (set < 0 || set > 7) throw file_error(path, "material '" + gm.name.substr(0, 100) + "': texCoord out of range");
   return set;
 }
@@ -350,13 +362,13 @@ void apply_texture_transform(const tinygltf::Model& model, int material, std::ve
   if (material < 0 || size_t(material) >= model.materials.size()) return;
   const auto& gm = model.materials[size_t(material)];
   const std::string where = "material '" + gm.name.substr(0, 100) + "'";
-  const auto& base = gm.pbrMetallicRoughness.baseColorTexture;
-  const auto& emissive = gm.emissiveTexture;
-  const UvTransform tb = texture_transform(base.extensions, where, path);
-  const UvTransform te = texture_transform(emissive.extensions, where, path);
-  if (base.index >= 0 && emissive.index >= 0 && !(tb == te))
-    throw file_error(path, where + ": base colour and emissive textures have different KHR_texture_transforms");
-  const UvTransform t = base.index >= 0 ? tb : te;
+  const auto used = material_textures(gm);
+  if (used.empty()) return;
+  const UvTransform t = texture_transform(used[0].second->extensions, where, path);
+  for (size_t i = 1; i < used.size(); ++i)
+    if (!(texture_transform(used[i].second->extensions, where, path) == t))
+      throw file_error(path, where + ": " + used[0].first + " and " + used[i].first +
+                                 " textures have different KHR_texture_transforms");
   if (t == UvTransform{}) return;
   const double c = std::cos(t.rotation), s = std::sin(t.rotation);
   for (size_t i = 0; i + 1 < uv.size(); i += 2) {
@@ -602,7 +614,8 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       if (p.material < 0 || size_t(p.material) >= model.materials.size() || !counted.insert(p.material).second)
         continue;
       const auto& gm = model.materials[size_t(p.material)];
-      for (const int t : {gm.pbrMetallicRoughness.baseColorTexture.index, gm.emissiveTexture.index}) {
+      for (const int t : {gm.pbrMetallicRoughness.baseColorTexture.index, gm.emissiveTexture.index,
+                          gm.pbrMetallicRoughness.metallicRoughnessTexture.index}) {
         if (t < 0 || size_t(t) >= model.textures.size()) continue;
         const int src = model.textures[size_t(t)].source;
         if (src < 0 || size_t(src) >= model.images.size()) continue;
@@ -659,6 +672,42 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     slot.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
     return slot;
   };
+  // A linear 8-bit glTF texture's channel `channel`, f(texel in [0, 1]) per texel, for a
+  // one-channel bitmap parameter (metallicRoughnessTexture: roughness in G, metallic in B).
+  struct ChannelMap {
+    int height = 0, width = 0;
+    std::vector<float> values;
+    Wrap wrap = Wrap::Repeat;
+  };
+  auto read_channel = [&](int texture, int channel, const std::function<float(float)>& f, const std::string& what) {
+    if (size_t(texture) >= model.textures.size()) throw file_error(path, what + " references a missing texture");
+    const auto& tex = model.textures[size_t(texture)];
+    if (tex.source < 0 || size_t(tex.source) >= model.images.size())
+      throw file_error(path, "texture " + std::to_string(texture) + " references a missing image");
+    const auto& img = model.images[size_t(tex.source)];
+    if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
+      throw file_error(path, what + " '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
+    limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width), uint64_t(img.height));
+    if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
+      throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
+    ChannelMap map;
+    map.height = img.height, map.width = img.width;
+    map.values.resize(size_t(img.width) * size_t(img.height));
+    for (size_t i = 0; i < map.values.size(); ++i)
+      map.values[i] = f(float(img.image[i * size_t(img.component) + size_t(channel)]) / 255.f);
+    if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
+      throw file_error(path, "texture references a missing sampler");
+    const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
+    map.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;
+    return map;
+  };
+  auto channel_param = [&](ChannelMap map, const std::string& name, float upper) {
+    for (float& v : map.values) v = std::min(v, upper);
+    TextureSlot slot = add_param(name, {map.height, map.width, 1}, std::move(map.values), 0.f, upper);
+    slot.bitmap = true;
+    slot.wrap = map.wrap;
+    return slot;
+  };
   auto material_for = [&](int gi) {
     if (auto it = material_of.find(gi); it != material_of.end()) return it->second;
     Material m;
@@ -677,14 +726,36 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       throw file_error(path, "material '" + gm.name + "': baseColorFactor needs 4 values");
     std::vector<float> base(pbr.baseColorFactor.begin(), pbr.baseColorFactor.begin() + 3);
     // Metallic 0 and 1 are the pure lobes (and keep their parameter names); anything between is
-    // the specification's blend of the two.
-    m.type = pbr.metallicFactor == 0.0   ? BsdfType::RoughPlastic
-             : pbr.metallicFactor == 1.0 ? BsdfType::RoughConductor
-                                         : BsdfType::MetallicRoughness;
-    float alpha = float(pbr.roughnessFactor * pbr.roughnessFactor);
-    m.roughness = add_param(m.name + ".roughness", {1}, {alpha}, 0.f, 4.f);
+    // the specification's blend of the two. A metallicRoughnessTexture (linear; roughness in G,
+    // metallic in B, each times its factor) makes both bitmaps, and the blend unless its metallic
+    // texels are all 0 or all 1.
+    const int mr_texture = pbr.metallicRoughnessTexture.index;
+    const float metallic_factor = float(pbr.metallicFactor), roughness_factor = float(pbr.roughnessFactor);
+    ChannelMap metallic_map;
+    bool all_zero = metallic_factor == 0.f, all_one = metallic_factor == 1.f;
+    if (mr_texture >= 0) {
+      metallic_map = read_channel(
+          mr_texture, 2, [&](float b) { return b * metallic_factor; },
+          "material '" + gm.name.substr(0, 100) + "': metallic-roughness texture");
+      const auto& v = metallic_map.values;
+      all_zero = std::all_of(v.begin(), v.end(), [](float x) { return x == 0.f; });
+      all_one = std::all_of(v.begin(), v.end(), [](float x) { return x == 1.f; });
+    }
+    m.type = all_zero ? BsdfType::RoughPlastic : all_one ? BsdfType::RoughConductor : BsdfType::MetallicRoughness;
+    if (mr_texture >= 0) {
+      // GGX α = (perceptual roughness)² per texel.
+      m.roughness =
+          channel_param(read_channel(
+                            mr_texture, 1, [&](float g) { return (g * roughness_factor) * (g * roughness_factor); },
+                            "material '" + gm.name.substr(0, 100) + "': metallic-roughness texture"),
+                        m.name + ".roughness", 4.f);
+    } else {
+      const float alpha = roughness_factor * roughness_factor;
+      m.roughness = add_param(m.name + ".roughness", {1}, {alpha}, 0.f, 4.f);
+    }
     if (m.type == BsdfType::MetallicRoughness)
-      m.metallic = add_param(m.name + ".metallic", {1}, {float(pbr.metallicFactor)}, 0.f, 1.f);
+      m.metallic = mr_texture >= 0 ? channel_param(std::move(metallic_map), m.name + ".metallic", 1.f)
+                                   : add_param(m.name + ".metallic", {1}, {metallic_factor}, 0.f, 1.f);
     TextureSlot color;
     const std::string key = m.type == BsdfType::RoughConductor ? ".specular"
                             : m.type == BsdfType::RoughPlastic ? ".albedo"

@@ -565,3 +565,59 @@ TEST_CASE("glTF vertex colours and the metallic blend: prb matches taped AD and 
     CHECK(std::abs(row.finite_difference) > 0);
   }
 }
+
+// metallicRoughnessTexture (linear; roughness in G, metallic in B, times the factors): one-channel
+// bitmaps <material>.roughness (GGX α = roughness²) and <material>.metallic; the blend unless every
+// metallic texel is 0 or 1. It shares the material's uv set like the other textures.
+TEST_CASE("metallic-roughness textures become roughness and metallic bitmaps", "[gltf]") {
+  TempDir tmp;
+  auto quad_with = [&](const std::string& name, const std::string& mr_texture, double metallic_factor) {
+    const std::string file = write_emissive_quad(tmp, name);
+    // The quad's emissive material gets a metallic-roughness texture (image 1) instead.
+    replace_in_file(file, R"("metallicFactor": 0)",
+                    "\"metallicFactor\": " + std::to_string(metallic_factor) +
+                        ", \"roughnessFactor\": 0.5, \"metallicRoughnessTexture\": " + mr_texture);
+    replace_in_file(
+        file, R"("textures": [{"source": 0}], "images": [{"uri": "emit.png"}])",
+        R"("textures": [{"source": 0}, {"source": 1}], "images": [{"uri": "emit.png"}, {"uri": "mr.png"}])");
+    return file;
+  };
+  Image mr(2, 1, 3);
+  mr.at(0, 0, 1) = 1.f;  // left: roughness 1, metallic 0
+  mr.at(1, 0, 2) = 1.f;  // right: roughness 0, metallic 1
+  write_image(tmp("mr.png"), mr);
+  {
+    auto scene = load_scene(quad_with("mixed.gltf", R"({"index": 1, "texCoord": 1})", 1.0));
+    const Material& m = scene->materials.at(0);
+    CHECK(m.type == BsdfType::MetallicRoughness);
+    const Param& rough = scene->params[m.roughness.param];
+    const Param& metal = scene->params[m.metallic.param];
+    CHECK(rough.name == "glow.roughness");
+    CHECK(rough.shape == std::vector<int>{1, 2, 1});
+    CHECK(rough.value == std::vector<float>{0.25f, 0.f});  // (1 · 0.5)², (0 · 0.5)²
+    CHECK(metal.name == "glow.metallic");
+    CHECK(metal.value == std::vector<float>{0.f, 1.f});
+    CHECK(m.roughness.bitmap);
+    CHECK(m.metallic.bitmap);
+    CHECK(scene->params.find("glow.base_color") >= 0);
+    Camera& cam = scene->cameras[0];
+    cam.width = cam.height = 16;
+    cam.update();
+    const Image img = render(*scene, {0, 4, 3, false});
+    for (float v : img.data) REQUIRE(std::isfinite(v));
+  }
+  {
+    // The factor scales the texels: metallic 0 everywhere is the plain plastic (no metallic parameter).
+    auto scene = load_scene(quad_with("plastic.gltf", R"({"index": 1, "texCoord": 1})", 0.0));
+    CHECK(scene->materials.at(0).type == BsdfType::RoughPlastic);
+    CHECK(scene->params.find("glow.metallic") < 0);
+    CHECK(scene->params[scene->materials.at(0).roughness.param].shape == std::vector<int>{1, 2, 1});
+  }
+  try {
+    load_scene(quad_with("sets.gltf", R"({"index": 1, "texCoord": 0})", 1.0));
+    FAIL("two uv sets accepted");
+  } catch (const InputError& e) {
+    CHECK(std::string(e.what()).find("emissive and metallic-roughness textures use different uv sets") !=
+          std::string::npos);
+  }
+}
