@@ -646,10 +646,14 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     s.param = scene->params.add(std::move(p), path);
     return s;
   };
-  // An sRGB 8-bit glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
-  auto texture_param = [&](int texture, const std::vector<float>& factor, float upper, const std::string& name,
-                           const std::string& what) {
-    if (size_t(texture) >= model.textures.size()) throw file_error(path, name + ": references a missing texture");
+  // A texture's decoded 8-bit RGB(A) image, checked, and its wrap mode. `owner` names what refers
+  // to a missing texture, `what` the image in the other errors.
+  struct TextureImage {
+    const tinygltf::Image* img;
+    Wrap wrap;
+  };
+  auto texture_image = [&](int texture, const std::string& owner, const std::string& what) {
+    if (size_t(texture) >= model.textures.size()) throw file_error(path, owner + " references a missing texture");
     const auto& tex = model.textures[size_t(texture)];
     if (tex.source < 0 || size_t(tex.source) >= model.images.size())
       throw file_error(path, "texture " + std::to_string(texture) + " references a missing image");
@@ -659,6 +663,17 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width), uint64_t(img.height));
     if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
       throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
+    if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
+      throw file_error(path, "texture references a missing sampler");
+    const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
+    // CLAMP_TO_EDGE; mirrored falls back to repeat
+    return TextureImage{&img, wrap == 33071 ? Wrap::Clamp : Wrap::Repeat};
+  };
+  // An sRGB 8-bit glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
+  auto texture_param = [&](int texture, const std::vector<float>& factor, float upper, const std::string& name,
+                           const std::string& what) {
+    const TextureImage t = texture_image(texture, name + ":", what);
+    const auto& img = *t.img;
     std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
     for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
       for (int c = 0; c < 3; ++c)
@@ -666,10 +681,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
             upper, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * factor[size_t(c)]);
     TextureSlot slot = add_param(name, {img.height, img.width, 3}, std::move(v), 0.f, upper);
     slot.bitmap = true;
-    if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
-      throw file_error(path, "texture references a missing sampler");
-    const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
-    slot.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;  // CLAMP_TO_EDGE; mirrored falls back to repeat
+    slot.wrap = t.wrap;
     return slot;
   };
   // A linear 8-bit glTF texture's channel `channel`, f(texel in [0, 1]) per texel, for a
@@ -680,25 +692,14 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     Wrap wrap = Wrap::Repeat;
   };
   auto read_channel = [&](int texture, int channel, const std::function<float(float)>& f, const std::string& what) {
-    if (size_t(texture) >= model.textures.size()) throw file_error(path, what + " references a missing texture");
-    const auto& tex = model.textures[size_t(texture)];
-    if (tex.source < 0 || size_t(tex.source) >= model.images.size())
-      throw file_error(path, "texture " + std::to_string(texture) + " references a missing image");
-    const auto& img = model.images[size_t(tex.source)];
-    if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
-      throw file_error(path, what + " '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
-    limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width), uint64_t(img.height));
-    if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
-      throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
+    const TextureImage t = texture_image(texture, what, what);
+    const auto& img = *t.img;
     ChannelMap map;
     map.height = img.height, map.width = img.width;
     map.values.resize(size_t(img.width) * size_t(img.height));
     for (size_t i = 0; i < map.values.size(); ++i)
       map.values[i] = f(float(img.image[i * size_t(img.component) + size_t(channel)]) / 255.f);
-    if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
-      throw file_error(path, "texture references a missing sampler");
-    const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
-    map.wrap = wrap == 33071 ? Wrap::Clamp : Wrap::Repeat;
+    map.wrap = t.wrap;
     return map;
   };
   auto channel_param = [&](ChannelMap map, const std::string& name, float upper) {

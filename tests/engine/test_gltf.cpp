@@ -613,6 +613,14 @@ TEST_CASE("metallic-roughness textures become roughness and metallic bitmaps", "
     CHECK(scene->params.find("glow.metallic") < 0);
     CHECK(scene->params[scene->materials.at(0).roughness.param].shape == std::vector<int>{1, 2, 1});
   }
+  // Bad input: a texture index past the file's textures is a one-line error, not a read past them.
+  try {
+    load_scene(quad_with("missing.gltf", R"({"index": 7, "texCoord": 1})", 1.0));
+    FAIL("a missing metallic-roughness texture accepted");
+  } catch (const InputError& e) {
+    CHECK(std::string(e.what()).find("metallic-roughness texture references a missing texture") != std::string::npos);
+    CHECK(std::string(e.what()).find('\n') == std::string::npos);
+  }
   try {
     load_scene(quad_with("sets.gltf", R"({"index": 1, "texCoord": 0})", 1.0));
     FAIL("two uv sets accepted");
