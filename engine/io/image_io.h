@@ -1,8 +1,8 @@
 #pragma once
 // Images in and out: OpenEXR and PNG through OpenEXR and libpng, PFM directly, JPEG and Radiance
-// HDR through OpenImageIO in a plugin opened on first use (engine/plugins/). Pixel data is row-major, row 0 on top (the first
-// scanline), interleaved channels, linear float. Files are written atomically: to a temporary
-// name in the same folder, then renamed, so a killed run never leaves a truncated file.
+// HDR through OpenImageIO in a plugin opened on first use (engine/plugins/). Pixel data is row-major, row 0 on top (the
+// first scanline), interleaved channels, linear float. Files are written atomically: to a temporary name in the same
+// folder, then renamed, so a killed run never leaves a truncated file.
 #include <string>
 #include <vector>
 
@@ -26,8 +26,8 @@ struct Image {
 
 // Reads PNG, OpenEXR, JPEG, Radiance HDR and PFM, chosen by the file's first bytes (not its
 // name). 8/16-bit files are decoded from sRGB to linear when `decode_srgb`; float files are
-// returned as stored. One channel (grey; EXR: Y) or three (RGB; EXR: R, G, B); alpha is not read. Errors (missing, corrupt, NaN/inf) throw
-// InputError naming the file.
+// returned as stored. One channel (grey; EXR: Y) or three (RGB; EXR: R, G, B); alpha is not read. Errors (missing,
+// corrupt, NaN/inf) throw InputError naming the file.
 Image read_image(const std::string& path, bool decode_srgb);
 Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_image without path-error mapping
 // Throws InputError unless the extension is one write_image supports (check before long work).
