@@ -57,6 +57,14 @@ struct OptimizedParam {
   json init;  // null: keep the scene's value
   std::optional<Param> ground_truth;
   double tv_weight = 0;  // total-variation regularizer (grids and images)
+  // Iterate averaging (Polyak–Ruppert): with average_from = N ≥ 0 the result is the mean of the
+  // values after iterations N+1, …, the last (restarted by a resolution change after N). It
+  // removes the jitter Monte Carlo gradients leave in the last iterates; the renders of the
+  // iterations themselves use the current iterate.
+  int average_from = -1;
+  std::vector<float> average;
+  int average_count = 0;
+  const std::vector<float>& result(const Param& p) const { return average_count > 0 ? average : p.value; }
 };
 
 struct Config {
@@ -227,7 +235,6 @@ Config parse_config(const std::string& path) {
       if (m != "float32" && m != "bfloat16") p.fail_at("moments", "expected \"float32\" or \"bfloat16\"");
       a.bf16_moments = m == "bfloat16";
     }
-    op.adam = Adam(a);
     if (const json* init = p.find("init")) op.init = *init;
     if (const json* st = p.find("schedule")) {
       if (!st->is_array()) p.fail_at("schedule", "expected a list of {\"until\", \"resolution\"}");
@@ -257,6 +264,8 @@ Config parse_config(const std::string& path) {
         op.stages.push_back(stage);
       }
     }
+    if (p.has("warmup")) a.warmup = int(p.integer("warmup", 0, 0, 10000000));
+    if (p.has("average_from")) op.average_from = int(p.integer("average_from", 0, 0, 10000000));
     if (p.has("regularizer")) {
       Node r = p.child("regularizer");
       const std::string type = r.string("type");
@@ -264,6 +273,7 @@ Config parse_config(const std::string& path) {
       op.tv_weight = r.number_required("weight", 0, 1e12);
       r.finish();
     }
+    op.adam = Adam(a);
     p.finish();
     c.params.push_back(std::move(op));
   }
@@ -681,6 +691,7 @@ class Job {
         if (s && !has_resolution(param, *s)) {
           resize_param(param, *s);
           p.adam.reset(param.size());
+          p.average.clear(), p.average_count = 0;
           scene_->prepare_sampling();  // majorants of the new grid
         }
         p.adam.set_learning_rate(s && s->lr > 0 ? s->lr : p.lr);
@@ -739,6 +750,15 @@ class Job {
         for (auto& g : param.grad) g /= float(per_iteration);
         loss += add_total_variation(param, p.tv_weight);
         p.adam.step(param.value, param.grad);
+        if (p.average_from >= 0 && it + 1 > p.average_from) {
+          if (p.average_count == 0) {
+            p.average = param.value;
+          } else {
+            for (size_t i = 0; i < param.value.size(); ++i)
+              p.average[i] += (param.value[i] - p.average[i]) / float(p.average_count + 1);
+          }
+          ++p.average_count;
+        }
       }
       scene_->prepare_sampling();
       // Work every rank repeats in full (not divided among MPI ranks): bench/mpi's cost model.
@@ -895,8 +915,12 @@ class Job {
     const OptimizedParam& p = c_.params.front();
     if (!p.ground_truth) return -1;
     const Param& gt = *p.ground_truth;
-    return rmse(scene_->params[p.handle], gt, c_.rmse_width ? c_.rmse_width : gt.width(),
-                c_.rmse_height ? c_.rmse_height : gt.height());
+    const int w = c_.rmse_width ? c_.rmse_width : gt.width(), h = c_.rmse_height ? c_.rmse_height : gt.height();
+    const Param& param = scene_->params[p.handle];
+    if (p.average_count == 0) return rmse(param, gt, w, h);
+    Param averaged = param;  // the run's result so far: the iterate average
+    averaged.value = p.average;
+    return rmse(averaged, gt, w, h);
   }
 
   void write_log() {
@@ -979,8 +1003,10 @@ class Job {
       state["parameters"][p.name] = {{"shape", param.shape},
                                      {"adam_t", p.adam.steps()},
                                      {"adam_decay_t", p.adam.decay_steps()},
-                                     {"moments", half ? "bfloat16" : "float32"}};
+                                     {"moments", half ? "bfloat16" : "float32"},
+                                     {"average_count", p.average_count}};
       write_floats(tmp + "/" + p.name + ".value", param.value);
+      if (p.average_count > 0) write_floats(tmp + "/" + p.name + ".average", p.average);
       if (half) {
         write_floats(tmp + "/" + p.name + ".adam_m", p.adam.m16);
         write_floats(tmp + "/" + p.name + ".adam_v", p.adam.v16);
@@ -1053,6 +1079,10 @@ class Job {
           p.adam.v = read_floats(dir + "/" + p.name + ".adam_v", size);
         }
         p.adam.set_state(s.at("adam_t").get<int>(), s.at("adam_decay_t").get<int>());
+        p.average_count = s.value("average_count", 0);
+        if (p.average_count < 0) throw file_error(dir + "/state.json", "negative average_count of '" + p.name + "'");
+        p.average.clear();
+        if (p.average_count > 0) p.average = read_floats(dir + "/" + p.name + ".average", size);
       }
       for (const auto& r : state.at("log"))
         log_.push_back({r[0].get<int>(), r[1].get<double>(), r[2].get<double>(), r[3].get<double>()});
@@ -1071,6 +1101,20 @@ class Job {
   }
 
   void finish(double seconds) {
+    // The result of an averaging parameter is its iterate average (the last iterate's RMSE is
+    // kept for the summary).
+    std::map<std::string, double> last_iterate_rmse;
+    for (auto& p : c_.params) {
+      if (p.average_count == 0) continue;
+      Param& param = scene_->params[p.handle];
+      if (p.ground_truth) {
+        const Param& gt = *p.ground_truth;
+        last_iterate_rmse[p.name] =
+            rmse(param, gt, c_.rmse_width ? c_.rmse_width : gt.width(), c_.rmse_height ? c_.rmse_height : gt.height());
+      }
+      param.value = p.average;
+    }
+    scene_->prepare_sampling();
     // compare.png: target | initial | final, for the first view (rendered by all ranks).
     const Image final_view = render(*scene_, {cameras_[0], c_.reference_spp, 0xabcdefull, false});
     const double mpi_seconds = dist::mpi_seconds(), reduced = dist::reduced_bytes();
@@ -1139,6 +1183,10 @@ class Job {
             {"rmse_final", after},
             {"rmse_reduction", after > 0 ? before / after : 0.0},
             {"rmse_resolution", is_grid(gt) ? json{gt.shape[2], gt.shape[1], gt.shape[0]} : json{w, h}}};
+        if (p.average_count > 0) {
+          summary["parameters"][p.name]["averaged_iterates"] = p.average_count;
+          summary["parameters"][p.name]["rmse_last_iterate"] = last_iterate_rmse[p.name];
+        }
       }
     }
     write_text_atomic(out("final/params.json"), final_params.dump(1) + "\n");

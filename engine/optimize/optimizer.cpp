@@ -20,10 +20,11 @@ void Adam::reset(size_t size) {
 }
 
 double Adam::current_learning_rate() const {
-  if (s_.decay == "exponential") return s_.learning_rate * std::pow(s_.decay_rate, double(global_t_));
-  if (s_.decay == "step" && s_.decay_every > 0)
-    return s_.learning_rate * std::pow(s_.decay_rate, double(global_t_ / s_.decay_every));
-  return s_.learning_rate;
+  double lr = s_.learning_rate;
+  if (s_.decay == "exponential") lr *= std::pow(s_.decay_rate, double(global_t_));
+  if (s_.decay == "step" && s_.decay_every > 0) lr *= std::pow(s_.decay_rate, double(global_t_ / s_.decay_every));
+  if (s_.warmup > 0 && t_ < s_.warmup) lr *= double(t_ + 1) / double(s_.warmup);
+  return lr;
 }
 
 namespace {

@@ -16,6 +16,10 @@ struct AdamSettings {
   double decay_rate = 1.0;
   int decay_every = 0;
   float lower = -1e30f, upper = 1e30f;
+  // Warm-up: the first `warmup` steps after every reset take lr · t / warmup (t = 1, 2, …). Right
+  // after a reset Adam's bias-corrected step is ±lr for every element whatever its gradient's
+  // signal-to-noise ratio (m̂ / √v̂ = ±1 at t = 1); the ramp lets v̂ average some gradients first.
+  int warmup = 0;
   // Storage of the two moments: float32, or bfloat16 with stochastic rounding (half the memory;
   // 8 significant bits, unbiased, see float_to_bf16).
   bool bf16_moments = false;
@@ -46,6 +50,7 @@ class Adam {
   void step(std::vector<float>& value, const std::vector<float>& gradient);
   // Resets moments (after a resolution change).
   void reset(size_t size);
+  // The learning rate of the next step (decay and warm-up applied).
   double current_learning_rate() const;
   // The undecayed learning rate (a schedule stage may set its own).
   void set_learning_rate(double lr) { s_.learning_rate = lr; }

@@ -291,6 +291,75 @@ TEST_CASE("resuming with bfloat16 moments reaches the same parameters as an unin
   CHECK(read_all(a + "/out/final/floor.albedo.exr") != read_all(c + "/out/final/floor.albedo.exr"));
 }
 
+TEST_CASE("Adam's warm-up ramps the learning rate after every reset", "[optimizer]") {
+  // A constant gradient makes m̂ / √v̂ = 1 exactly, so each update is the step's learning rate.
+  AdamSettings s;
+  s.learning_rate = 0.4;
+  s.warmup = 4;
+  Adam adam(s);
+  std::vector<float> x{0.f}, g{1.f};
+  auto steps = [&] {
+    std::vector<double> d;
+    for (int t = 0; t < 6; ++t) {
+      const float before = x[0];
+      adam.step(x, g);
+      d.push_back(double(before) - x[0]);
+    }
+    return d;
+  };
+  const std::vector<double> expected{0.1, 0.2, 0.3, 0.4, 0.4, 0.4};
+  for (int round = 0; round < 2; ++round) {
+    const std::vector<double> d = steps();
+    for (size_t k = 0; k < d.size(); ++k) CHECK(d[k] == Approx(expected[k]).epsilon(1e-5));
+    adam.reset(1);  // a resolution change: the ramp starts again
+  }
+  // Without warm-up the first step is the full rate (negative control for the ramp).
+  Adam plain(AdamSettings{.learning_rate = 0.4});
+  std::vector<float> y{0.f};
+  plain.step(y, g);
+  CHECK(y[0] == Approx(-0.4f));
+}
+
+TEST_CASE("iterate averaging returns the mean of the iterates after average_from", "[optimizer]") {
+  // One worker thread: runs of 5 and 6 iterations retrace each other bit for bit, so the run that
+  // averages from 4 must return exactly the mean of their results (iterates 5 and 6).
+  const std::string a = test::temp_dir("avg-5"), b = test::temp_dir("avg-6"), c = test::temp_dir("avg-mean");
+  REQUIRE(run_optimize(write_tiny_job(a, 5), "", 1, true) == 0);
+  REQUIRE(run_optimize(write_tiny_job(b, 6), "", 1, true) == 0);
+  auto averaging = [](const std::string& job, int from) {
+    nlohmann::json j = read_json(job);
+    j["parameters"]["floor.albedo"]["average_from"] = from;
+    std::ofstream(job) << j.dump();
+    return job;
+  };
+  REQUIRE(run_optimize(averaging(write_tiny_job(c, 6), 4), "", 1, true) == 0);
+  const std::vector<float> x5 = read_all(a + "/out/final/floor.albedo.exr"),
+                           x6 = read_all(b + "/out/final/floor.albedo.exr"),
+                           mean = read_all(c + "/out/final/floor.albedo.exr");
+  REQUIRE(x5.size() == mean.size());
+  REQUIRE(x5 != x6);
+  size_t off = 0;
+  for (size_t i = 0; i < mean.size(); ++i) off += mean[i] != x5[i] + (x6[i] - x5[i]) / 2.f;
+  CHECK(off == 0);
+  auto summary = read_json(c + "/out/summary.json");
+  const auto& p = summary["parameters"]["floor.albedo"];
+  CHECK(p["averaged_iterates"] == 2);
+  CHECK(p["rmse_last_iterate"].get<double>() ==
+        Approx(read_json(b + "/out/summary.json")["parameters"]["floor.albedo"]["rmse_final"].get<double>()));
+  CHECK(p["rmse_final"].get<double>() != p["rmse_last_iterate"].get<double>());
+  // The average survives a resume: 5 iterations (the last checkpoint holds iterate 5 as the
+  // average of one), then on to 6.
+  const std::string d = test::temp_dir("avg-resume");
+  REQUIRE(run_optimize(averaging(write_tiny_job(d, 5), 4), "", 1, true) == 0);
+  CHECK(read_json(d + "/out/checkpoint/state.json")["parameters"]["floor.albedo"]["average_count"] == 1);
+  REQUIRE(run_optimize(averaging(write_tiny_job(d, 6), 4), d + "/out", 1, true) == 0);
+  CHECK(read_all(d + "/out/final/floor.albedo.exr") == mean);
+  // average_from at the last iteration averages nothing: the plain result.
+  const std::string e = test::temp_dir("avg-none");
+  REQUIRE(run_optimize(averaging(write_tiny_job(e, 6), 6), "", 1, true) == 0);
+  CHECK(read_all(e + "/out/final/floor.albedo.exr") == x6);
+}
+
 TEST_CASE("config errors are one clear line naming the config", "[optimizer][errors]") {
   const std::string dir = test::temp_dir("opt-errors");
   write_tiny_job(dir, 2);
@@ -321,6 +390,14 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1, "moments": "fp8"}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/parameters/floor.albedo/moments: expected \"float32\" or \"bfloat16\"");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "warmup": -3}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.albedo/warmup");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "average_from": 2.5}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.albedo/average_from");
   Image small(5, 5, 3);
   write_image(dir + "/small.exr", small);
   expect_error(
