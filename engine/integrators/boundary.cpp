@@ -1,0 +1,287 @@
+#include "engine/integrators/boundary.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <unordered_map>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/path.h"
+
+namespace bl {
+
+namespace {
+
+// An edge of a mesh after welding: its two end positions and, per adjacent face, that face's
+// vertex indices at the two ends (copies of the same position when the mesh splits vertices).
+struct MeshEdge {
+  int mesh = 0;
+  Vec3f p0, p1;
+  uint32_t first_copy = 0, faces = 0;  // into EdgeTable::copies, `faces` pairs
+};
+
+struct EdgeTable {
+  std::vector<MeshEdge> edges;
+  std::vector<uint32_t> copies;  // pairs (vertex at p0, vertex at p1) per adjacent face
+};
+
+// Welding key: a position's bits (equal floats weld; −0 and +0 do not, which no loader produces).
+struct PositionKey {
+  uint32_t x, y, z;
+  bool operator==(const PositionKey& o) const { return x == o.x && y == o.y && z == o.z; }
+};
+struct PositionHash {
+  size_t operator()(const PositionKey& k) const { return size_t(mix64((uint64_t(k.x) << 32 | k.y) ^ mix64(k.z))); }
+};
+
+uint32_t weld_id(const Vec3f& p, std::unordered_map<PositionKey, uint32_t, PositionHash>& ids) {
+  PositionKey key;
+  std::memcpy(&key.x, &p.x, 4);
+  std::memcpy(&key.y, &p.y, 4);
+  std::memcpy(&key.z, &p.z, 4);
+  return ids.emplace(key, uint32_t(ids.size())).first->second;
+}
+
+bool front_facing(const Mesh& m, uint32_t face, const Vec3f& eye) {
+  return dot(m.face_normals[face], eye - m.positions[m.indices[3 * size_t(face)]]) > 0.f;
+}
+
+// Whether the shading is discontinuous across an edge between two faces (vertex indices of the
+// faces' copies of its ends).
+bool shading_crease(const Mesh& m, uint32_t f0, uint32_t f1, const uint32_t* c0, const uint32_t* c1) {
+  const Vec3f &n0 = m.face_normals[f0], &n1 = m.face_normals[f1];
+  if (dot(n0, n1) > 1.f - 1e-6f) return false;  // coplanar: the same plane on both sides
+  if (m.normals.empty()) return true;           // flat shading
+  for (int k = 0; k < 2; ++k) {
+    const Vec3f &a = m.normals[c0[k]], &b = m.normals[c1[k]];
+    if (a.x != b.x || a.y != b.y || a.z != b.z) return true;  // split normals
+  }
+  return false;
+}
+
+// Candidate edges of the meshes in `wanted` seen from `eye`.
+EdgeTable candidate_edges(const Scene& scene, const std::vector<int>& wanted, const Vec3f& eye) {
+  EdgeTable table;
+  for (int mi : wanted) {
+    const Mesh& m = scene.meshes[size_t(mi)];
+    if (scene.materials[size_t(m.material)].is_null) continue;  // invisible
+    std::unordered_map<PositionKey, uint32_t, PositionHash> ids;
+    std::vector<uint32_t> welded(m.vertex_count());
+    for (size_t v = 0; v < welded.size(); ++v) welded[v] = weld_id(m.positions[v], ids);
+    // (welded end a < welded end b, face, corner) for every face edge, grouped by ends.
+    struct Record {
+      uint64_t key;
+      uint32_t face, corner;
+    };
+    std::vector<Record> records;
+    records.reserve(m.indices.size());
+    for (uint32_t f = 0; f < uint32_t(m.triangle_count()); ++f) {
+      if (!(m.triangle_area(f) > 0.f)) continue;  // degenerate: no visible face
+      for (uint32_t c = 0; c < 3; ++c) {
+        const uint32_t a = welded[m.indices[3 * size_t(f) + c]], b = welded[m.indices[3 * size_t(f) + (c + 1) % 3]];
+        if (a == b) continue;
+        records.push_back({uint64_t(std::min(a, b)) << 32 | std::max(a, b), f, c});
+      }
+    }
+    std::sort(records.begin(), records.end(),
+              [](const Record& x, const Record& y) { return x.key != y.key ? x.key < y.key : x.face < y.face; });
+    for (size_t i = 0; i < records.size();) {
+      size_t j = i;
+      while (j < records.size() && records[j].key == records[i].key) ++j;
+      // Ends in the welded order: end 0 is the smaller welded id.
+      const uint32_t end0 = uint32_t(records[i].key >> 32);
+      MeshEdge e;
+      e.mesh = mi;
+      e.first_copy = uint32_t(table.copies.size());
+      e.faces = uint32_t(j - i);
+      for (size_t k = i; k < j; ++k) {
+        const uint32_t f = records[k].face, c = records[k].corner;
+        uint32_t va = m.indices[3 * size_t(f) + c], vb = m.indices[3 * size_t(f) + (c + 1) % 3];
+        if (welded[va] != end0) std::swap(va, vb);
+        table.copies.push_back(va);
+        table.copies.push_back(vb);
+      }
+      const uint32_t* copies = table.copies.data() + e.first_copy;
+      e.p0 = m.positions[copies[0]];
+      e.p1 = m.positions[copies[1]];
+      bool candidate = e.faces != 2;  // boundary or non-manifold
+      if (e.faces == 2) {
+        const uint32_t f0 = records[i].face, f1 = records[i + 1].face;
+        candidate =
+            front_facing(m, f0, eye) != front_facing(m, f1, eye) || shading_crease(m, f0, f1, copies, copies + 2);
+      }
+      if (candidate)
+        table.edges.push_back(e);
+      else
+        table.copies.resize(e.first_copy);
+      i = j;
+    }
+  }
+  return table;
+}
+
+// Liang–Barsky: the parameter range [t0, t1] of a + t·(b − a), t ∈ [0, 1], inside [0, w]×[0, h].
+bool clip_to_film(const Vec2f& a, const Vec2f& b, float w, float h, float* t0, float* t1) {
+  float lo = 0.f, hi = 1.f;
+  const float dx = b.x - a.x, dy = b.y - a.y;
+  const float p[4] = {-dx, dx, -dy, dy}, q[4] = {a.x, w - a.x, a.y, h - a.y};
+  for (int k = 0; k < 4; ++k) {
+    if (p[k] == 0.f) {
+      if (q[k] < 0.f) return false;
+      continue;
+    }
+    const float r = q[k] / p[k];
+    if (p[k] < 0.f)
+      lo = std::max(lo, r);
+    else
+      hi = std::min(hi, r);
+  }
+  *t0 = lo;
+  *t1 = hi;
+  return hi > lo;
+}
+
+}  // namespace
+
+bool project_point(const Camera& cam, const Vec3f& p, Vec2f* screen, Vec3d* dpx, Vec3d* dpy) {
+  const Vec3d d = Vec3d(p - cam.origin), right(cam.right), up(cam.true_up), forward(cam.forward);
+  const double cx = dot(d, right), cy = dot(d, up), cz = dot(d, forward);
+  if (!(cz > double(cam.near_clip))) return false;
+  const double kx = double(cam.width) / (2.0 * double(cam.tan_x)), ky = double(cam.height) / (2.0 * double(cam.tan_y));
+  screen->x = float(0.5 * double(cam.width) + kx * cx / cz);
+  screen->y = float(0.5 * double(cam.height) - ky * cy / cz);
+  if (dpx) *dpx = (right * cz - forward * cx) * (kx / (cz * cz));
+  if (dpy) *dpy = (up * cz - forward * cy) * (-ky / (cz * cz));
+  return true;
+}
+
+BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
+  const Camera& cam = scene.cameras.at(size_t(options.camera));
+  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
+    throw InputError("boundary gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
+                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
+                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
+  std::vector<int> wanted = options.meshes;
+  if (wanted.empty())
+    for (int i = 0; i < int(scene.meshes.size()); ++i) wanted.push_back(i);
+  std::vector<int> slot(scene.meshes.size(), -1);  // mesh → index into the result
+  for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
+
+  BoundaryGradient result;
+  result.meshes = wanted;
+  result.vertices.resize(wanted.size());
+  for (size_t k = 0; k < wanted.size(); ++k)
+    result.vertices[k].assign(scene.meshes[size_t(wanted[k])].vertex_count(), Vec3d(0.0));
+
+  // Project and clip every candidate; the sampling table is over clipped projected lengths.
+  const EdgeTable table = candidate_edges(scene, wanted, cam.origin);
+  struct Projected {
+    uint32_t edge;
+    Vec2f a, b;
+    float t0, t1;
+    Vec3d ax, ay, bx, by;  // Jacobian rows of the ends
+  };
+  std::vector<Projected> projected;
+  std::vector<double> cdf;
+  double total = 0;
+  for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i) {
+    const MeshEdge& e = table.edges[i];
+    Projected pr{};
+    pr.edge = i;
+    if (!project_point(cam, e.p0, &pr.a, &pr.ax, &pr.ay) || !project_point(cam, e.p1, &pr.b, &pr.bx, &pr.by)) continue;
+    if (!clip_to_film(pr.a, pr.b, float(cam.width), float(cam.height), &pr.t0, &pr.t1)) continue;
+    const double len = std::hypot(double(pr.b.x - pr.a.x), double(pr.b.y - pr.a.y)) * double(pr.t1 - pr.t0);
+    if (!(len > 0.0)) continue;
+    projected.push_back(pr);
+    cdf.push_back(total += len);
+  }
+  result.edges = int(projected.size());
+  result.edge_length = total;
+  const uint64_t n = options.samples ? options.samples : uint64_t(cam.width) * uint64_t(cam.height);
+  result.samples = n;
+  if (projected.empty() || n == 0) return result;
+
+  using Accumulator = std::vector<std::vector<Vec3d>>;
+  tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
+    Accumulator acc(wanted.size());
+    for (size_t k = 0; k < wanted.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
+    return acc;
+  });
+  // Random numbers of edge sample k: a stream of its own (pixel k, sample index kEdgeStream);
+  // dimensions 0 and 1 (the camera's in a render) pick the edge and the point on it.
+  constexpr uint64_t kEdgeStream = 0xed9e5a3b1c00ull;
+  const double weight_scale = total / double(n);
+  tbb::parallel_for(tbb::blocked_range<uint64_t>(0, n, 256), [&](const tbb::blocked_range<uint64_t>& range) {
+    Accumulator& acc = per_thread.local();
+    NoObserver none;
+    for (uint64_t k = range.begin(); k != range.end(); ++k) {
+      const PathSampler sampler(options.seed, k, kEdgeStream);
+      const double u = double(sampler.get(Dim::kPixelX)) * total;
+      const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
+      const Projected& pr = projected[pick];
+      const float s = pr.t0 + sampler.get(Dim::kPixelY) * (pr.t1 - pr.t0);
+      const float ex = pr.b.x - pr.a.x, ey = pr.b.y - pr.a.y;
+      const float x = pr.a.x + s * ex, y = pr.a.y + s * ey;
+      const int px = int(std::floor(x)), py = int(std::floor(y));
+      if (px < 0 || py < 0 || px >= cam.width || py >= cam.height) continue;
+      const float inv = 1.f / std::sqrt(ex * ex + ey * ey);
+      const float nx = -ey * inv, ny = ex * inv;
+      const float eps = options.side_offset;
+      const Vec3f minus = trace_path<float>(
+          scene, PathStart{cam.generate(x - eps * nx, y - eps * ny), 1, 0.f, cam.medium}, sampler, none);
+      const Vec3f plus = trace_path<float>(
+          scene, PathStart{cam.generate(x + eps * nx, y + eps * ny), 1, 0.f, cam.medium}, sampler, none);
+      const Vec3f delta = minus - plus;
+      const double w =
+          (double(adjoint.at(px, py, 0)) * double(delta.x) + double(adjoint.at(px, py, 1)) * double(delta.y) +
+           double(adjoint.at(px, py, 2)) * double(delta.z)) *
+          weight_scale;
+      if (w == 0.0) continue;
+      // dF += w · n·((1 − s) J_a dp_a + s J_b dp_b): the ends' gradients are w (1 − s) J_aᵀn, w s J_bᵀn.
+      const Vec3d ga = (pr.ax * double(nx) + pr.ay * double(ny)) * (w * double(1.f - s));
+      const Vec3d gb = (pr.bx * double(nx) + pr.by * double(ny)) * (w * double(s));
+      const MeshEdge& e = table.edges[pr.edge];
+      std::vector<Vec3d>& g = acc[size_t(slot[size_t(e.mesh)])];
+      const uint32_t* copies = table.copies.data() + e.first_copy;
+      const double share = 1.0 / double(e.faces);
+      for (uint32_t f = 0; f < e.faces; ++f) {
+        g[copies[2 * f]] += ga * share;
+        g[copies[2 * f + 1]] += gb * share;
+      }
+    }
+  });
+  for (const Accumulator& acc : per_thread)
+    for (size_t k = 0; k < acc.size(); ++k)
+      for (size_t v = 0; v < acc[k].size(); ++v) result.vertices[k][v] += acc[k][v];
+  return result;
+}
+
+PoseGradient pose_gradient(const Mesh& mesh, const std::vector<Vec3d>& vertex_gradient, const Vec3f& pivot) {
+  PoseGradient g{Vec3d(0.0), Vec3d(0.0), Vec3d(0.0)};
+  for (size_t v = 0; v < mesh.vertex_count(); ++v) {
+    const Vec3d& d = vertex_gradient[v];
+    const Vec3d r = Vec3d(mesh.positions[v] - pivot);
+    g.translate += d;
+    g.scale += r * d;
+    g.rotate += cross(r, d);
+  }
+  return g;
+}
+
+CameraPoseGradient camera_pose_gradient(const Scene& scene, const BoundaryGradient& g, const Camera& cam) {
+  if (g.meshes.size() != scene.meshes.size())
+    throw InputError("camera pose gradient: the boundary gradient must cover every mesh");
+  CameraPoseGradient c{Vec3d(0.0), Vec3d(0.0)};
+  for (size_t k = 0; k < g.meshes.size(); ++k) {
+    const PoseGradient p = pose_gradient(scene.meshes[size_t(g.meshes[k])], g.vertices[k], cam.origin);
+    c.origin -= p.translate;
+    c.rotate -= p.rotate;
+  }
+  return c;
+}
+
+}  // namespace bl

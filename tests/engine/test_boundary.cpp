@@ -1,0 +1,359 @@
+// The primary-visibility boundary term of geometry gradients (edge sampling,
+// engine/integrators/boundary.h) on scenes where it is the whole gradient: shapes that emit a
+// constant radiance and do not scatter, seen directly, so moving them changes the image only where
+// their silhouettes cross the film.
+//  - Exact edge integrals: a uniformly emitting square's image sum under scale and depth (every
+//    sample of the estimator carries the same value), and under sideways motion with a ramp adjoint.
+//  - Finite differences in expectation (the visibility makes same-seed differences of a few rays
+//    jump, so both sides are averaged over seeds and compared with |z| < 4) with an occluder in
+//    front and a background behind, and for a rotating cube (split vertices, welded edges);
+//    negative controls: a zero and a negated boundary term fail the same comparison.
+#include <catch2/catch.hpp>
+#include <nlohmann/json.hpp>
+
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "engine/integrators/boundary.h"
+#include "engine/integrators/render.h"
+#include "engine/scene/scene_load.h"
+#include "test_scenes.h"
+
+using namespace bl;
+
+namespace {
+
+constexpr int kRes = 64;
+
+nlohmann::json base_scene(int max_depth) {
+  return {{"integrator", {{"spp", 16}, {"max_depth", max_depth}, {"rr_depth", 0}}},
+          {"cameras",
+           {{{"name", "main"},
+             {"origin", {0, 0, 0}},
+             {"target", {0, 0, -1}},
+             {"up", {0, 1, 0}},
+             {"fov", 40},
+             {"resolution", {kRes, kRes}}}}},
+          {"materials", {{"black", {{"type", "diffuse"}, {"albedo", {0, 0, 0}}}}}},
+          {"shapes", nlohmann::json::array()}};
+}
+
+nlohmann::json emitter_shape(const std::string& name, const std::string& type, const nlohmann::json& transform,
+                             const nlohmann::json& radiance) {
+  nlohmann::json s = {{"name", name}, {"type", type}, {"material", "black"}, {"transform", transform}};
+  if (!radiance.is_null()) s["emitter"] = {{"radiance", radiance}};
+  return s;
+}
+
+std::unique_ptr<Scene> build(const nlohmann::json& j) {
+  return build_json_scene(j, test::temp_dir("boundary") + "/scene.json");
+}
+
+int mesh_index(const Scene& scene, const std::string& name) {
+  for (size_t i = 0; i < scene.meshes.size(); ++i)
+    if (scene.meshes[i].name == name) return int(i);
+  FAIL("no mesh " << name);
+  return -1;
+}
+
+Vec3f centre(const Mesh& m) {
+  Vec3d c(0.0);
+  for (size_t v = 0; v < m.vertex_count(); ++v) c += Vec3d(m.positions[v]);
+  return Vec3f(c / double(m.vertex_count()));
+}
+
+Image constant_adjoint(float value) {
+  Image a(kRes, kRes, 3);
+  for (float& v : a.data) v = value;
+  return a;
+}
+
+double functional(const Image& image, const Image& adjoint) {
+  double f = 0;
+  for (size_t i = 0; i < image.data.size(); ++i) f += double(image.data[i]) * double(adjoint.data[i]);
+  return f;
+}
+
+// A pose direction: translate, rotate (axis-angle) and scale about `pivot`, applied to one mesh.
+struct PoseDirection {
+  Vec3d translate{0.0}, rotate{0.0}, scale{0.0};
+  double along(const PoseGradient& g) const {
+    return dot(translate, g.translate) + dot(rotate, g.rotate) + dot(scale, g.scale);
+  }
+};
+
+// Moves mesh `mi` by h along `dir` (exact rotation about the axis for rotations) and re-prepares.
+void apply_pose(Scene& scene, int mi, const std::vector<Vec3f>& rest, const Vec3f& pivot, const PoseDirection& dir,
+                double h) {
+  Mesh& m = scene.meshes[size_t(mi)];
+  const double angle = length(dir.rotate) * h;
+  const Vec3d axis = length(dir.rotate) > 0 ? dir.rotate / length(dir.rotate) : Vec3d(0, 0, 1);
+  for (size_t v = 0; v < m.vertex_count(); ++v) {
+    Vec3d r = Vec3d(rest[v] - pivot);
+    r = r * (Vec3d(1.0) + dir.scale * h);
+    // Rodrigues.
+    r = r * std::cos(angle) + cross(axis, r) * std::sin(angle) + axis * (dot(axis, r) * (1 - std::cos(angle)));
+    m.positions[v] = Vec3f(Vec3d(pivot) + r + dir.translate * h);
+  }
+  scene.prepare();
+}
+
+struct Estimate {
+  double mean = 0, stderr_ = 0;
+};
+
+Estimate summarize(const std::vector<double>& xs) {
+  double m = 0;
+  for (double x : xs) m += x;
+  m /= double(xs.size());
+  double v = 0;
+  for (double x : xs) v += (x - m) * (x - m);
+  v /= double(xs.size() - 1);
+  return {m, std::sqrt(v / double(xs.size()))};
+}
+
+// Boundary-term directional derivative of F along `dir` over `seeds` seeds.
+Estimate boundary_derivative(const Scene& scene, int mi, const Vec3f& pivot, const Image& adjoint,
+                             const PoseDirection& dir, int seeds, uint64_t samples) {
+  std::vector<double> xs;
+  for (int s = 0; s < seeds; ++s) {
+    BoundaryOptions o;
+    o.samples = samples;
+    o.seed = uint64_t(1000 + s);
+    o.meshes = {mi};
+    const BoundaryGradient g = primary_boundary_gradient(scene, adjoint, o);
+    xs.push_back(dir.along(pose_gradient(scene.meshes[size_t(mi)], g.vertices[0], pivot)));
+  }
+  return summarize(xs);
+}
+
+// Central differences of F = ⟨adjoint, render⟩ at step ±h, the same seed on both sides, over seeds.
+Estimate finite_difference(Scene& scene, int mi, const Vec3f& pivot, const Image& adjoint, const PoseDirection& dir,
+                           double h, int seeds, int spp) {
+  const std::vector<Vec3f> rest(scene.meshes[size_t(mi)].positions.begin(),
+                                scene.meshes[size_t(mi)].positions.end() - 1);
+  std::vector<double> xs;
+  for (int s = 0; s < seeds; ++s) {
+    PassOptions o;
+    o.spp = spp;
+    o.seed = uint64_t(77 + s);
+    o.progress = false;
+    apply_pose(scene, mi, rest, pivot, dir, h);
+    const double up = functional(render(scene, o), adjoint);
+    apply_pose(scene, mi, rest, pivot, dir, -h);
+    const double down = functional(render(scene, o), adjoint);
+    xs.push_back((up - down) / (2 * h));
+  }
+  apply_pose(scene, mi, rest, pivot, dir, 0.0);
+  return summarize(xs);
+}
+
+double z_score(const Estimate& a, const Estimate& b) {
+  return (a.mean - b.mean) / std::sqrt(a.stderr_ * a.stderr_ + b.stderr_ * b.stderr_);
+}
+
+}  // namespace
+
+TEST_CASE("a uniformly emitting square: the boundary term is the exact edge integral", "[boundary]") {
+  nlohmann::json j = base_scene(1);
+  j["shapes"].push_back(emitter_shape("square", "rectangle", {{"scale", 0.5}, {"translate", {0, 0, -3}}}, {1, 1, 1}));
+  auto scene = build(j);
+  const int mi = mesh_index(*scene, "square");
+  const Camera& cam = scene->cameras[0];
+  // Side 1 at distance 3: side in pixels, image sum F = 3 channels · area.
+  const double px_per_unit = double(cam.width) / (2.0 * 3.0 * double(cam.tan_x));
+  const double side = px_per_unit;
+  const double area = side * side;
+  const Vec3f pivot(0.f, 0.f, -3.f);
+
+  // The render agrees with the analytic area (the pixel integral of a box filter).
+  PassOptions po;
+  po.spp = 64;
+  po.progress = false;
+  const Image ones = constant_adjoint(1.f);
+  CHECK(functional(render(*scene, po), ones) == Approx(3.0 * area).epsilon(2e-3));
+
+  BoundaryOptions o;
+  o.samples = 4096;
+  o.meshes = {mi};
+  const BoundaryGradient g = primary_boundary_gradient(*scene, ones, o);
+  CHECK(g.edges == 4);  // the diagonal is neither a silhouette nor a crease
+  CHECK(g.edge_length == Approx(4.0 * side).epsilon(1e-5));
+  const PoseGradient pose = pose_gradient(scene->meshes[size_t(mi)], g.vertices[0], pivot);
+  // Area ∝ s_x s_y and ∝ 1/(3 − t_z)²: for a uniform scale and for depth, every sample of the
+  // estimator carries the same value, so these are exact.
+  CHECK(pose.scale.x + pose.scale.y == Approx(6.0 * area).epsilon(1e-4));
+  CHECK(std::abs(pose.scale.z) < 1e-6 * area);
+  CHECK(pose.translate.z == Approx(2.0 * area).epsilon(1e-4));  // 3 · 2 · area / 3
+  // One axis of scale, and rotation about the view axis (the area does not change), are exact
+  // in expectation only (which edge a sample picks decides its value).
+  PoseDirection sx, rz;
+  sx.scale = Vec3d(1, 0, 0);
+  rz.rotate = Vec3d(0, 0, 1);
+  const Estimate scale_x = boundary_derivative(*scene, mi, pivot, ones, sx, 8, 65536);
+  const Estimate rotate_z = boundary_derivative(*scene, mi, pivot, ones, rz, 8, 65536);
+  INFO("dF/ds_x " << scale_x.mean << " ± " << scale_x.stderr_ << ", dF/dr_z " << rotate_z.mean << " ± "
+                  << rotate_z.stderr_ << ", exact " << 3.0 * area << " and 0");
+  CHECK(std::abs(scale_x.mean - 3.0 * area) < 4 * scale_x.stderr_);
+  CHECK(scale_x.stderr_ < 0.01 * area);
+  CHECK(std::abs(rotate_z.mean) < 4 * rotate_z.stderr_);
+  CHECK(rotate_z.stderr_ < 0.01 * area);
+
+  // A ramp adjoint a = floor(x) + 1/2: sliding sideways at px_per_unit pixels per unit changes F
+  // by 3 · px_per_unit · side · (a(right edge) − a(left edge)).
+  Image ramp(kRes, kRes, 3);
+  for (int y = 0; y < kRes; ++y)
+    for (int x = 0; x < kRes; ++x)
+      for (int c = 0; c < 3; ++c) ramp.at(x, y, c) = float(x) + 0.5f;
+  const double left = 0.5 * kRes - 0.5 * side, right = 0.5 * kRes + 0.5 * side;
+  const double expected = 3.0 * px_per_unit * side * (std::floor(right) - std::floor(left));
+  PoseDirection dir;
+  dir.translate = Vec3d(1, 0, 0);
+  const Estimate est = boundary_derivative(*scene, mi, pivot, ramp, dir, 8, 65536);
+  INFO("dF/dtx " << est.mean << " ± " << est.stderr_ << ", exact " << expected);
+  CHECK(std::abs(est.mean - expected) < 4 * est.stderr_ + 1e-4 * std::abs(expected));
+  CHECK(est.stderr_ < 0.01 * std::abs(expected));
+}
+
+TEST_CASE("boundary term against finite differences in expectation, with occlusion and a background", "[boundary]") {
+  nlohmann::json j = base_scene(3);
+  j["environment"] = {{"type", "constant"}, {"radiance", {0.25, 0.25, 0.25}}};
+  // An emitting square at depth 3, partly hidden by a black square at depth 2 (its right side).
+  j["shapes"].push_back(
+      emitter_shape("light", "rectangle", {{"scale", 0.5}, {"translate", {0, 0, -3}}}, {1.0, 0.5, 0.25}));
+  j["shapes"].push_back(
+      emitter_shape("blocker", "rectangle", {{"scale", 0.25}, {"translate", {0.25, 0.1, -2}}}, nullptr));
+  auto scene = build(j);
+  const Image ones = constant_adjoint(1.f);
+  // Steps moving edges by 1–3 pixels; F is piecewise linear in these motions (kinks where a
+  // corner crosses an edge), so central differences inside one piece have no truncation error.
+  struct Case {
+    const char* mesh;
+    PoseDirection dir;
+    double h;
+  };
+  std::vector<Case> cases;
+  {
+    // Steps small enough that no corner crosses another edge (F is then linear along them).
+    PoseDirection d;
+    d.translate = Vec3d(1, -0.3, 0);
+    cases.push_back({"light", d, 0.05});
+    PoseDirection s;
+    s.scale = Vec3d(0.5, 1, 0);
+    cases.push_back({"light", s, 0.04});
+    PoseDirection e;
+    e.translate = Vec3d(-1, 0.3, 0);
+    cases.push_back({"blocker", e, 0.03});
+    PoseDirection t;
+    t.scale = Vec3d(1, -0.5, 0);
+    cases.push_back({"blocker", t, 0.05});
+  }
+  for (const Case& c : cases) {
+    const int mi = mesh_index(*scene, c.mesh);
+    const Vec3f pivot = centre(scene->meshes[size_t(mi)]);
+    const Estimate fd = finite_difference(*scene, mi, pivot, ones, c.dir, c.h, 8, 16);
+    const Estimate be = boundary_derivative(*scene, mi, pivot, ones, c.dir, 8, 8192);
+    const double z = z_score(be, fd);
+    INFO(c.mesh << ": boundary " << be.mean << " ± " << be.stderr_ << ", finite differences " << fd.mean << " ± "
+                << fd.stderr_ << ", z " << z);
+    CHECK(std::abs(z) < 4);
+    // Negative controls: without the boundary term, or with its sign flipped, the same test fails.
+    CHECK(std::abs(z_score(Estimate{0.0, 0.0}, fd)) > 4);
+    CHECK(std::abs(z_score(Estimate{-be.mean, be.stderr_}, fd)) > 4);
+  }
+}
+
+TEST_CASE("a rotating emissive cube: welded edges, silhouettes from split vertices", "[boundary]") {
+  nlohmann::json j = base_scene(2);
+  j["shapes"].push_back(emitter_shape(
+      "cube", "cube", {{"scale", 0.4}, {"rotate", {{"axis", {1, 1, 0}}, {"angle", 30}}}, {"translate", {0.1, 0, -3}}},
+      {1, 1, 1}));
+  auto scene = build(j);
+  const int mi = mesh_index(*scene, "cube");
+  REQUIRE(scene->meshes[size_t(mi)].vertex_count() == 24);  // split per face
+  const Vec3f pivot = centre(scene->meshes[size_t(mi)]);
+  const Image ones = constant_adjoint(1.f);
+  BoundaryOptions o;
+  o.samples = 1024;
+  o.meshes = {mi};
+  // Twelve welded edges; the faces' shared edges are creases (flat normals), all candidates.
+  CHECK(primary_boundary_gradient(*scene, ones, o).edges == 12);
+  PoseDirection r;
+  r.rotate = Vec3d(0, 1, 0.2);
+  const Estimate fd = finite_difference(*scene, mi, pivot, ones, r, 0.05, 8, 16);
+  const Estimate be = boundary_derivative(*scene, mi, pivot, ones, r, 8, 8192);
+  const double z = z_score(be, fd);
+  INFO("boundary " << be.mean << " ± " << be.stderr_ << ", finite differences " << fd.mean << " ± " << fd.stderr_
+                   << ", z " << z);
+  CHECK(std::abs(z) < 4);
+  CHECK(std::abs(z_score(Estimate{0.0, 0.0}, fd)) > 4);
+  // Counting each split copy of an edge as a boundary of its own would double the silhouettes.
+  CHECK(std::abs(z_score(Estimate{2 * be.mean, 2 * be.stderr_}, fd)) > 4);
+}
+
+TEST_CASE("a moving camera: the boundary term of its pose against finite differences", "[boundary]") {
+  nlohmann::json j = base_scene(2);
+  j["environment"] = {{"type", "constant"}, {"radiance", {0.25, 0.25, 0.25}}};
+  j["shapes"].push_back(
+      emitter_shape("light", "rectangle", {{"scale", 0.5}, {"translate", {0, 0, -3}}}, {1.0, 0.5, 0.25}));
+  j["shapes"].push_back(
+      emitter_shape("blocker", "rectangle", {{"scale", 0.25}, {"translate", {0.25, 0.1, -2}}}, nullptr));
+  // Across the film's left border (the film spans ±1.09 at depth 3): turning the camera changes
+  // how much of it is seen.
+  j["shapes"].push_back(
+      emitter_shape("side", "rectangle", {{"scale", 0.3}, {"translate", {-1.2, 0, -3}}}, {0.5, 1.0, 1.0}));
+  auto scene = build(j);
+  const Image ones = constant_adjoint(1.f);
+  const Camera rest = scene->cameras[0];
+  // Moves the camera rigidly by h along (translate, rotate) and renders F.
+  auto moved = [&](const Vec3d& translate, const Vec3d& rotate, double h, uint64_t seed) {
+    Camera& cam = scene->cameras[0];
+    cam = rest;
+    const double angle = length(rotate) * h;
+    const Vec3d axis = length(rotate) > 0 ? rotate / length(rotate) : Vec3d(0, 0, 1);
+    auto rot = [&](const Vec3d& v) {
+      return v * std::cos(angle) + cross(axis, v) * std::sin(angle) + axis * (dot(axis, v) * (1 - std::cos(angle)));
+    };
+    cam.origin = Vec3f(Vec3d(rest.origin) + translate * h);
+    cam.target = Vec3f(Vec3d(cam.origin) + rot(Vec3d(rest.target - rest.origin)));
+    cam.up = Vec3f(rot(Vec3d(rest.up)));
+    cam.update();
+    PassOptions o;
+    o.spp = 16;
+    o.seed = seed;
+    o.progress = false;
+    return functional(render(*scene, o), ones);
+  };
+  struct Case {
+    Vec3d translate, rotate;
+    double h;
+  };
+  // Steps of 1–2 pixels at the light's depth, no corner crossing an edge.
+  for (const Case& c : {Case{Vec3d(-1, 0.3, 0), Vec3d(0.0), 0.03}, Case{Vec3d(0, 0, 1), Vec3d(0.0), 0.1},
+                        Case{Vec3d(0.0), Vec3d(0.2, -1, 0), 0.01}}) {
+    std::vector<double> fd, be;
+    for (int s = 0; s < 8; ++s) {
+      const double up = moved(c.translate, c.rotate, c.h, uint64_t(5 + s));
+      const double down = moved(c.translate, c.rotate, -c.h, uint64_t(5 + s));
+      fd.push_back((up - down) / (2 * c.h));
+    }
+    scene->cameras[0] = rest;
+    for (int s = 0; s < 8; ++s) {
+      BoundaryOptions o;
+      o.samples = 8192;
+      o.seed = uint64_t(300 + s);
+      const CameraPoseGradient g =
+          camera_pose_gradient(*scene, primary_boundary_gradient(*scene, ones, o), scene->cameras[0]);
+      be.push_back(dot(c.translate, g.origin) + dot(c.rotate, g.rotate));
+    }
+    const Estimate f = summarize(fd), b = summarize(be);
+    const double z = z_score(b, f);
+    INFO("camera " << c.translate.x << "," << c.translate.y << "," << c.translate.z << " / " << c.rotate.x << ","
+                   << c.rotate.y << "," << c.rotate.z << ": boundary " << b.mean << " ± " << b.stderr_
+                   << ", finite differences " << f.mean << " ± " << f.stderr_ << ", z " << z);
+    CHECK(std::abs(z) < 4);
+    CHECK(std::abs(z_score(Estimate{0.0, 0.0}, f)) > 4);
+    CHECK(std::abs(z_score(Estimate{-b.mean, b.stderr_}, f)) > 4);
+  }
+}
