@@ -125,17 +125,17 @@ EdgeTable candidate_edges(const Scene& scene, const std::vector<int>& wanted, co
 }
 
 // Liang–Barsky: the parameter range [t0, t1] of a + t·(b − a), t ∈ [0, 1], inside [0, w]×[0, h].
-bool clip_to_film(const Vec2f& a, const Vec2f& b, float w, float h, float* t0, float* t1) {
-  float lo = 0.f, hi = 1.f;
-  const float dx = b.x - a.x, dy = b.y - a.y;
-  const float p[4] = {-dx, dx, -dy, dy}, q[4] = {a.x, w - a.x, a.y, h - a.y};
+bool clip_to_film(double ax, double ay, double bx, double by, double w, double h, double* t0, double* t1) {
+  double lo = 0, hi = 1;
+  const double dx = bx - ax, dy = by - ay;
+  const double p[4] = {-dx, dx, -dy, dy}, q[4] = {ax, w - ax, ay, h - ay};
   for (int k = 0; k < 4; ++k) {
-    if (p[k] == 0.f) {
-      if (q[k] < 0.f) return false;
+    if (p[k] == 0) {
+      if (q[k] < 0) return false;
       continue;
     }
-    const float r = q[k] / p[k];
-    if (p[k] < 0.f)
+    const double r = q[k] / p[k];
+    if (p[k] < 0)
       lo = std::max(lo, r);
     else
       hi = std::min(hi, r);
@@ -143,6 +143,52 @@ bool clip_to_film(const Vec2f& a, const Vec2f& b, float w, float h, float* t0, f
   *t0 = lo;
   *t1 = hi;
   return hi > lo;
+}
+
+// Film position of world point p and the rows of its Jacobian, in double (no near-plane test).
+void project_raw(const Camera& cam, const Vec3d& p, double* x, double* y, Vec3d* jx, Vec3d* jy) {
+  const Vec3d d = p - Vec3d(cam.origin), right(cam.right), up(cam.true_up), forward(cam.forward);
+  const double cx = dot(d, right), cy = dot(d, up), cz = dot(d, forward);
+  const double kx = double(cam.width) / (2.0 * double(cam.tan_x)), ky = double(cam.height) / (2.0 * double(cam.tan_y));
+  *x = 0.5 * double(cam.width) + kx * cx / cz;
+  *y = 0.5 * double(cam.height) - ky * cy / cz;
+  *jx = (right * cz - forward * cx) * (kx / (cz * cz));
+  *jy = (up * cz - forward * cy) * (-ky / (cz * cz));
+}
+
+// One end of a projected edge: its film position and how it moves with the edge's own vertex at
+// this end and with the other one (non-zero when this end was clipped to the near plane: the
+// clipped point slides along the edge as either vertex moves).
+struct EndProjection {
+  double x = 0, y = 0;
+  Vec3d jx_own, jy_own, jx_other, jy_other;
+};
+
+// Projects the end `own` of the edge (own, other), clipped to the near plane when behind it.
+// False when the whole edge is behind.
+bool project_end(const Camera& cam, const Vec3f& own_f, const Vec3f& other_f, EndProjection* e) {
+  const Vec3d own(own_f), other(other_f), forward(cam.forward), origin(cam.origin);
+  const double c = double(cam.near_clip);
+  const double z_own = dot(own - origin, forward), z_other = dot(other - origin, forward);
+  if (z_own > c) {
+    project_raw(cam, own, &e->x, &e->y, &e->jx_own, &e->jy_own);
+    e->jx_other = e->jy_other = Vec3d(0.0);
+    return true;
+  }
+  if (!(z_other > c)) return false;
+  // q = own + λ (other − own) on the near plane; dq = (1 − λ) M δown + λ M δother with
+  // M = I − (other − own) forwardᵀ / Δ, Δ = z_other − z_own.
+  const double delta = z_other - z_own, lambda = (c - z_own) / delta;
+  const Vec3d edge = other - own;
+  Vec3d jx, jy;
+  project_raw(cam, own + edge * lambda, &e->x, &e->y, &jx, &jy);
+  jx = jx - forward * (dot(jx, edge) / delta);
+  jy = jy - forward * (dot(jy, edge) / delta);
+  e->jx_own = jx * (1 - lambda);
+  e->jy_own = jy * (1 - lambda);
+  e->jx_other = jx * lambda;
+  e->jy_other = jy * lambda;
+  return true;
 }
 
 }  // namespace
@@ -181,9 +227,8 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   const EdgeTable table = candidate_edges(scene, wanted, cam.origin);
   struct Projected {
     uint32_t edge;
-    Vec2f a, b;
-    float t0, t1;
-    Vec3d ax, ay, bx, by;  // Jacobian rows of the ends
+    EndProjection a, b;  // the ends at the edge's p0 and p1
+    double t0, t1;       // the part inside the film
   };
   std::vector<Projected> projected;
   std::vector<double> cdf;
@@ -192,9 +237,9 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
     const MeshEdge& e = table.edges[i];
     Projected pr{};
     pr.edge = i;
-    if (!project_point(cam, e.p0, &pr.a, &pr.ax, &pr.ay) || !project_point(cam, e.p1, &pr.b, &pr.bx, &pr.by)) continue;
-    if (!clip_to_film(pr.a, pr.b, float(cam.width), float(cam.height), &pr.t0, &pr.t1)) continue;
-    const double len = std::hypot(double(pr.b.x - pr.a.x), double(pr.b.y - pr.a.y)) * double(pr.t1 - pr.t0);
+    if (!project_end(cam, e.p0, e.p1, &pr.a) || !project_end(cam, e.p1, e.p0, &pr.b)) continue;
+    if (!clip_to_film(pr.a.x, pr.a.y, pr.b.x, pr.b.y, double(cam.width), double(cam.height), &pr.t0, &pr.t1)) continue;
+    const double len = std::hypot(pr.b.x - pr.a.x, pr.b.y - pr.a.y) * (pr.t1 - pr.t0);
     if (!(len > 0.0)) continue;
     projected.push_back(pr);
     cdf.push_back(total += len);
@@ -223,27 +268,29 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
       const double u = double(sampler.get(Dim::kPixelX)) * total;
       const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
       const Projected& pr = projected[pick];
-      const float s = pr.t0 + sampler.get(Dim::kPixelY) * (pr.t1 - pr.t0);
-      const float ex = pr.b.x - pr.a.x, ey = pr.b.y - pr.a.y;
-      const float x = pr.a.x + s * ex, y = pr.a.y + s * ey;
+      const double s = pr.t0 + double(sampler.get(Dim::kPixelY)) * (pr.t1 - pr.t0);
+      const double ex = pr.b.x - pr.a.x, ey = pr.b.y - pr.a.y;
+      const double x = pr.a.x + s * ex, y = pr.a.y + s * ey;
       const int px = int(std::floor(x)), py = int(std::floor(y));
       if (px < 0 || py < 0 || px >= cam.width || py >= cam.height) continue;
-      const float inv = 1.f / std::sqrt(ex * ex + ey * ey);
-      const float nx = -ey * inv, ny = ex * inv;
-      const float eps = options.side_offset;
+      const double inv = 1.0 / std::sqrt(ex * ex + ey * ey);
+      const double nx = -ey * inv, ny = ex * inv;
+      const double eps = double(options.side_offset);
       const Vec3f minus = trace_path<float>(
-          scene, PathStart{cam.generate(x - eps * nx, y - eps * ny), 1, 0.f, cam.medium}, sampler, none);
+          scene, PathStart{cam.generate(float(x - eps * nx), float(y - eps * ny)), 1, 0.f, cam.medium}, sampler, none);
       const Vec3f plus = trace_path<float>(
-          scene, PathStart{cam.generate(x + eps * nx, y + eps * ny), 1, 0.f, cam.medium}, sampler, none);
+          scene, PathStart{cam.generate(float(x + eps * nx), float(y + eps * ny)), 1, 0.f, cam.medium}, sampler, none);
       const Vec3f delta = minus - plus;
       const double w =
           (double(adjoint.at(px, py, 0)) * double(delta.x) + double(adjoint.at(px, py, 1)) * double(delta.y) +
            double(adjoint.at(px, py, 2)) * double(delta.z)) *
           weight_scale;
       if (w == 0.0) continue;
-      // dF += w · n·((1 − s) J_a dp_a + s J_b dp_b): the ends' gradients are w (1 − s) J_aᵀn, w s J_bᵀn.
-      const Vec3d ga = (pr.ax * double(nx) + pr.ay * double(ny)) * (w * double(1.f - s));
-      const Vec3d gb = (pr.bx * double(nx) + pr.by * double(ny)) * (w * double(s));
+      // dF += w · n·((1 − s) dx_a + s dx_b), each end's film motion dx linear in both vertices.
+      const Vec3d ga =
+          ((pr.a.jx_own * nx + pr.a.jy_own * ny) * (1 - s) + (pr.b.jx_other * nx + pr.b.jy_other * ny) * s) * w;
+      const Vec3d gb =
+          ((pr.a.jx_other * nx + pr.a.jy_other * ny) * (1 - s) + (pr.b.jx_own * nx + pr.b.jy_own * ny) * s) * w;
       const MeshEdge& e = table.edges[pr.edge];
       std::vector<Vec3d>& g = acc[size_t(slot[size_t(e.mesh)])];
       const uint32_t* copies = table.copies.data() + e.first_copy;

@@ -17,7 +17,8 @@
 // share its edges): boundary edges (one face), silhouettes seen from the camera (one face front-,
 // the other back-facing) and shading creases (two faces whose normals differ and whose shading
 // is discontinuous across the edge: flat shading or split vertex normals). Null surfaces have no
-// edges. Edges with an endpoint behind the camera's near plane are skipped (not clipped).
+// edges. An edge crossing the camera's near plane is clipped to it (the clipped end slides along
+// the edge as either vertex moves); one wholly behind it is not seen.
 //
 // Sampling: an edge in proportion to the length of its projection clipped to the film, then a
 // point uniformly along it; L(x^±) is one primal path each (the same random numbers on both sides).
