@@ -26,6 +26,11 @@
 // parameter s, through the projection's Jacobian; a welded edge splits it evenly between the
 // faces' copies of its vertices (right for motions that keep the copies together).
 //
+// Discontinuities inside faces are not edges and are missed: a one-sided emitter or BSDF decides
+// its side with the interpolated shading normal, which near a smooth mesh's silhouette turns away
+// from the camera in a band; the band's inner border moves with the mesh (a smooth-shaded
+// emitting sphere of 48 segments: a fifth of the derivative; flat shading has no such band).
+//
 // Not here yet (issue 9): the interior term, secondary visibility (shadows, reflections), and
 // parameters in grad/optimize. This is exact for what it covers: e.g. a shape emitting constant
 // radiance seen directly.

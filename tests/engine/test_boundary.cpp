@@ -379,3 +379,27 @@ TEST_CASE("edges crossing the near plane are clipped, not dropped", "[boundary]"
   for (const auto& [dir, h] : {std::pair{tx, 0.03}, std::pair{ry, 0.01}, std::pair{tz, 0.05}})
     check_pose_derivative(*scene, mi, dir, h, "strip");
 }
+
+TEST_CASE("an emitting sphere mesh: its silhouette loop among 2208 faces", "[boundary]") {
+  // Flat shading: with interpolated normals, the side a one-sided emitter emits on is decided by
+  // the shading normal, which turns away from the camera in a band inside the silhouette; the
+  // band's inner border is a discontinuity that is no mesh edge, which edge sampling cannot see
+  // (boundary.h). Measured with smooth normals, the scale direction below: boundary term 500 ± 11
+  // against finite differences 2505 ± 8.
+  nlohmann::json j = base_scene(2);
+  j["environment"] = {{"type", "constant"}, {"radiance", {0.25, 0.25, 0.25}}};
+  j["shapes"].push_back({{"name", "ball"},
+                         {"type", "sphere"},
+                         {"segments", 48},
+                         {"face_normals", true},
+                         {"material", "black"},
+                         {"emitter", {{"radiance", {1.0, 0.8, 0.6}}}},
+                         {"transform", {{"scale", 0.6}, {"translate", {0.2, -0.1, -3}}}}});
+  auto scene = build(j);
+  const int mi = mesh_index(*scene, "ball");
+  PoseDirection s, t;
+  s.scale = Vec3d(1, 0.5, 0.2);
+  t.translate = Vec3d(0.3, -1, 1);
+  check_pose_derivative(*scene, mi, s, 0.03, "sphere scale");
+  check_pose_derivative(*scene, mi, t, 0.05, "sphere translate");
+}
