@@ -22,6 +22,8 @@ struct MeshEdge {
   int mesh = 0;
   Vec3f p0, p1;
   uint32_t first_copy = 0, faces = 0;  // into EdgeTable::copies, `faces` pairs
+  uint32_t f0 = 0, f1 = 0;             // the two faces of a two-face edge
+  bool always = false;                 // boundary, non-manifold or crease: a candidate from everywhere
 };
 
 struct EdgeTable {
@@ -63,8 +65,17 @@ bool shading_crease(const Mesh& m, uint32_t f0, uint32_t f1, const uint32_t* c0,
   return false;
 }
 
-// Candidate edges of the meshes in `wanted` seen from `eye`.
-EdgeTable candidate_edges(const Scene& scene, const std::vector<int>& wanted, const Vec3f& eye) {
+// Whether an edge is a discontinuity seen from `eye`: always for boundary, non-manifold and
+// crease edges, for the others when one face is front- and the other back-facing.
+bool candidate_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye) {
+  if (e.always) return true;
+  const Mesh& m = scene.meshes[size_t(e.mesh)];
+  return front_facing(m, e.f0, eye) != front_facing(m, e.f1, eye);
+}
+
+// The edges of the meshes in `wanted` that can be a discontinuity seen from somewhere: all but
+// those between two coplanar faces with continuous shading.
+EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted) {
   EdgeTable table;
   for (int mi : wanted) {
     const Mesh& m = scene.meshes[size_t(mi)];
@@ -108,13 +119,15 @@ EdgeTable candidate_edges(const Scene& scene, const std::vector<int>& wanted, co
       const uint32_t* copies = table.copies.data() + e.first_copy;
       e.p0 = m.positions[copies[0]];
       e.p1 = m.positions[copies[1]];
-      bool candidate = e.faces != 2;  // boundary or non-manifold
+      bool keep = true;
+      e.always = e.faces != 2;  // boundary or non-manifold
       if (e.faces == 2) {
-        const uint32_t f0 = records[i].face, f1 = records[i + 1].face;
-        candidate =
-            front_facing(m, f0, eye) != front_facing(m, f1, eye) || shading_crease(m, f0, f1, copies, copies + 2);
+        e.f0 = records[i].face;
+        e.f1 = records[i + 1].face;
+        e.always = shading_crease(m, e.f0, e.f1, copies, copies + 2);
+        keep = e.always || dot(m.face_normals[e.f0], m.face_normals[e.f1]) <= 1.f - 1e-6f;  // can be a silhouette
       }
-      if (candidate)
+      if (keep)
         table.edges.push_back(e);
       else
         table.copies.resize(e.first_copy);
@@ -191,6 +204,41 @@ bool project_end(const Camera& cam, const Vec3f& own_f, const Vec3f& other_f, En
   return true;
 }
 
+// Checks the adjoint image against the camera and sets up zero gradients for `meshes` (all when
+// empty).
+BoundaryGradient empty_result(const Scene& scene, const Camera& cam, const Image& adjoint, std::vector<int> meshes) {
+  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
+    throw InputError("boundary gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
+                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
+                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
+  if (meshes.empty())
+    for (int i = 0; i < int(scene.meshes.size()); ++i) meshes.push_back(i);
+  BoundaryGradient result;
+  result.meshes = meshes;
+  result.vertices.resize(meshes.size());
+  for (size_t k = 0; k < meshes.size(); ++k)
+    result.vertices[k].assign(scene.meshes[size_t(meshes[k])].vertex_count(), Vec3d(0.0));
+  return result;
+}
+
+using Accumulator = std::vector<std::vector<Vec3d>>;
+
+// Adds the end gradients ga (at the edge's p0) and gb (at p1) to every face's copy of them.
+void add_to_edge(const EdgeTable& table, const MeshEdge& e, const Vec3d& ga, const Vec3d& gb, std::vector<Vec3d>& g) {
+  const uint32_t* copies = table.copies.data() + e.first_copy;
+  const double share = 1.0 / double(e.faces);
+  for (uint32_t f = 0; f < e.faces; ++f) {
+    g[copies[2 * f]] += ga * share;
+    g[copies[2 * f + 1]] += gb * share;
+  }
+}
+
+void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, BoundaryGradient& result) {
+  for (const Accumulator& acc : per_thread)
+    for (size_t k = 0; k < acc.size(); ++k)
+      for (size_t v = 0; v < acc[k].size(); ++v) result.vertices[k][v] += acc[k][v];
+}
+
 }  // namespace
 
 bool project_point(const Camera& cam, const Vec3f& p, Vec2f* screen, Vec3d* dpx, Vec3d* dpy) {
@@ -207,24 +255,13 @@ bool project_point(const Camera& cam, const Vec3f& p, Vec2f* screen, Vec3d* dpx,
 
 BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));
-  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
-    throw InputError("boundary gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
-                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
-                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
-  std::vector<int> wanted = options.meshes;
-  if (wanted.empty())
-    for (int i = 0; i < int(scene.meshes.size()); ++i) wanted.push_back(i);
+  BoundaryGradient result = empty_result(scene, cam, adjoint, options.meshes);
+  const std::vector<int>& wanted = result.meshes;
   std::vector<int> slot(scene.meshes.size(), -1);  // mesh → index into the result
   for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
 
-  BoundaryGradient result;
-  result.meshes = wanted;
-  result.vertices.resize(wanted.size());
-  for (size_t k = 0; k < wanted.size(); ++k)
-    result.vertices[k].assign(scene.meshes[size_t(wanted[k])].vertex_count(), Vec3d(0.0));
-
   // Project and clip every candidate; the sampling table is over clipped projected lengths.
-  const EdgeTable table = candidate_edges(scene, wanted, cam.origin);
+  const EdgeTable table = edge_topology(scene, wanted);
   struct Projected {
     uint32_t edge;
     EndProjection a, b;  // the ends at the edge's p0 and p1
@@ -235,6 +272,7 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   double total = 0;
   for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i) {
     const MeshEdge& e = table.edges[i];
+    if (!candidate_from(scene, e, cam.origin)) continue;
     Projected pr{};
     pr.edge = i;
     if (!project_end(cam, e.p0, e.p1, &pr.a) || !project_end(cam, e.p1, e.p0, &pr.b)) continue;
@@ -250,7 +288,6 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   result.samples = n;
   if (projected.empty() || n == 0) return result;
 
-  using Accumulator = std::vector<std::vector<Vec3d>>;
   tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
     Accumulator acc(wanted.size());
     for (size_t k = 0; k < wanted.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
@@ -292,18 +329,126 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
       const Vec3d gb =
           ((pr.a.jx_other * nx + pr.a.jy_other * ny) * (1 - s) + (pr.b.jx_own * nx + pr.b.jy_own * ny) * s) * w;
       const MeshEdge& e = table.edges[pr.edge];
-      std::vector<Vec3d>& g = acc[size_t(slot[size_t(e.mesh)])];
-      const uint32_t* copies = table.copies.data() + e.first_copy;
-      const double share = 1.0 / double(e.faces);
-      for (uint32_t f = 0; f < e.faces; ++f) {
-        g[copies[2 * f]] += ga * share;
-        g[copies[2 * f + 1]] += gb * share;
-      }
+      add_to_edge(table, e, ga, gb, acc[size_t(slot[size_t(e.mesh)])]);
     }
   });
-  for (const Accumulator& acc : per_thread)
-    for (size_t k = 0; k < acc.size(); ++k)
-      for (size_t v = 0; v < acc[k].size(); ++v) result.vertices[k][v] += acc[k][v];
+  reduce_into(per_thread, result);
+  return result;
+}
+
+BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& adjoint,
+                                             const SecondaryOptions& options) {
+  const Camera& cam = scene.cameras.at(size_t(options.camera));
+  BoundaryGradient result = empty_result(scene, cam, adjoint, options.meshes);
+  if (!scene.media.empty() || scene.has_null_surfaces)
+    throw InputError(scene.source + ": the secondary boundary term does not support media or null surfaces yet");
+  const std::vector<int>& wanted = result.meshes;
+  std::vector<int> slot(scene.meshes.size(), -1);
+  for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
+  const EdgeTable table = edge_topology(scene, wanted);
+  result.edges = int(table.edges.size());
+  result.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(std::max(options.spp, 0));
+  if (table.edges.empty() || options.spp <= 0) return result;
+
+  tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
+    Accumulator acc(wanted.size());
+    for (size_t k = 0; k < wanted.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
+    return acc;
+  });
+  // Streams: the camera path (its own seed), and per (sample, vertex) one for the edge choice and
+  // one for the two side paths.
+  constexpr uint64_t kPathSeed = 0x5ec0ed6e5ull, kEdgeSeed = 0x5ec0ed6e6ull, kSideSeed = 0x5ec0ed6e7ull;
+  const int max_depth = scene.settings.max_depth;
+  const double inv_spp = 1.0 / double(options.spp);
+  const double eps = double(options.side_angle);
+  tbb::parallel_for(tbb::blocked_range<int>(0, cam.height), [&](const tbb::blocked_range<int>& rows) {
+    Accumulator& acc = per_thread.local();
+    std::vector<double> cdf;
+    std::vector<uint32_t> index;
+    NoObserver none;
+    for (int py = rows.begin(); py != rows.end(); ++py)
+      for (int px = 0; px < cam.width; ++px) {
+        const Vec3d a(adjoint.at(px, py, 0), adjoint.at(px, py, 1), adjoint.at(px, py, 2));
+        if (a.x == 0 && a.y == 0 && a.z == 0) continue;
+        const uint64_t pixel = uint64_t(py) * uint64_t(cam.width) + uint64_t(px);
+        for (int s = 0; s < options.spp; ++s) {
+          const PathSampler sampler(options.seed ^ kPathSeed, pixel, uint64_t(s));
+          Ray ray = cam.generate(float(px) + sampler.get(Dim::kPixelX), float(py) + sampler.get(Dim::kPixelY));
+          Vec3f beta(1.f);
+          for (int vertex = 1; max_depth < 0 || vertex < max_depth; ++vertex) {
+            const Hit hit = scene.geometry->intersect(ray);
+            if (hit.mesh < 0) break;
+            const SurfacePoint sp = scene.surface_point(hit, ray);
+            const Material& material = scene.materials[size_t(scene.meshes[size_t(hit.mesh)].material)];
+            const Vec3f wo_world = -ray.direction;
+            const BsdfValue<float> bsdf = material.at<float>(scene.params, sp.uv, sp.color);
+            Vec3f normal = sp.shading_normal;
+            if (material.two_sided && dot(normal, wo_world) < 0.f) normal = -normal;
+            const Frame frame(normal);
+            const Vec3f wo = frame.to_local(wo_world);
+            const uint64_t stream = uint64_t(s) << 8 | uint64_t(std::min(vertex, 255));
+
+            // One edge sample at this vertex.
+            cdf.clear();
+            index.clear();
+            double total = 0;
+            for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i)
+              if (candidate_from(scene, table.edges[i], sp.p)) {
+                total += double(length(table.edges[i].p1 - table.edges[i].p0));
+                cdf.push_back(total);
+                index.push_back(i);
+              }
+            if (total > 0) {
+              const PathSampler edge_rng(options.seed ^ kEdgeSeed, pixel, stream);
+              const double u = double(edge_rng.get(0)) * total;
+              const size_t pick =
+                  std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
+              const MeshEdge& e = table.edges[index[pick]];
+              const double t = double(edge_rng.get(1));
+              const Vec3d x(sp.p), p0(e.p0), p1(e.p1);
+              const Vec3d p = p0 + (p1 - p0) * t;
+              const double r = length(p - x);
+              const Vec3d plane = cross(p0 - x, p1 - x);
+              const double plane_len = length(plane);
+              if (r > 0 && plane_len > 0) {
+                const Vec3d omega = (p - x) / r, n = plane / plane_len;
+                const Vec3f f = bsdf.eval(wo, frame.to_local(Vec3f(omega)));
+                if (!is_zero(f)) {
+                  // The side rays leave from the offset origin: aim them across the edge as seen from there.
+                  const Vec3f origin = offset_origin(sp.p, sp.geometric_normal, Vec3f(omega));
+                  const Vec3d o(origin);
+                  const Vec3d plane_o = cross(p0 - o, p1 - o);
+                  const Vec3d n_o = plane_o / length(plane_o), omega_o = (p - o) / length(p - o);
+                  const PathSampler side(options.seed ^ kSideSeed, pixel, stream);
+                  auto incident = [&](double sign) {
+                    const Vec3f d(normalize(omega_o + n_o * (sign * eps)));
+                    return trace_path<float>(scene, PathStart{Ray{origin, d}, vertex + 1, 0.f, -1}, side, none);
+                  };
+                  const Vec3f jump = incident(-1.0) - incident(1.0);
+                  const Vec3f weighted = beta * f * jump;
+                  const double arc = length(cross(normalize(p1 - p0), omega)) / r;
+                  const double w = (a.x * double(weighted.x) + a.y * double(weighted.y) + a.z * double(weighted.z)) *
+                                   arc * total / r * inv_spp;
+                  if (w != 0.0)
+                    add_to_edge(table, e, n * (w * (1 - t)), n * (w * t), acc[size_t(slot[size_t(e.mesh)])]);
+                }
+              }
+            }
+
+            // Continue by BSDF sampling.
+            const Vec2f ub{sampler.get(Dim::at(vertex, Dim::kBsdfU)), sampler.get(Dim::at(vertex, Dim::kBsdfV))};
+            const BsdfSample bs = bsdf.sample(wo, sampler.get(Dim::at(vertex, Dim::kLobe)), ub);
+            if (!(bs.pdf > 0.f)) break;
+            const Vec3f fs = bsdf.eval(wo, bs.wi);
+            if (is_zero(fs)) break;
+            beta = beta * fs * (1.f / bs.pdf);
+            const Vec3f wi_world = frame.to_world(bs.wi);
+            ray = Ray{offset_origin(sp.p, sp.geometric_normal, wi_world), wi_world};
+          }
+        }
+      }
+  });
+  reduce_into(per_thread, result);
   return result;
 }
 

@@ -31,7 +31,7 @@
 // from the camera in a band; the band's inner border moves with the mesh (a smooth-shaded
 // emitting sphere of 48 segments: a fifth of the derivative; flat shading has no such band).
 //
-// Not here yet (issue 9): the interior term, secondary visibility (shadows, reflections), and
+// Not here yet (issue 9): the interior term, an edge hierarchy for the secondary term, and
 // parameters in grad/optimize. This is exact for what it covers: e.g. a shape emitting constant
 // radiance seen directly.
 #include <cstdint>
@@ -64,6 +64,27 @@ struct BoundaryOptions {
 // Primary-visibility boundary term of dF/d(vertex positions) for F = Σ_p ⟨adjoint_p, I_p⟩
 // (`adjoint` has the camera's size and 3 channels).
 BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options);
+
+// Secondary-visibility boundary term: the derivative of what surface points see. Camera paths
+// (`spp` per pixel, BSDF-sampled, max depth as the scene's, no roulette) stop at each surface
+// vertex x; one point p on the candidate edges seen from x (uniform in 3D edge length over the
+// edges of `meshes`: a linear scan per vertex, no hierarchy yet) gives the direction ω = (p − x)/r
+// across which the incident radiance jumps; one path on each side (offset by ±`side_angle` along
+// the normal n of the plane through x and the edge) estimates L(ω⁻) − L(ω⁺), and
+//   dF += ⟨a, β f(ω) (L(ω⁻) − L(ω⁺))⟩ · (n·ṗ / r) · (|ê × ω| / r) / pdf(p),
+// with β the path throughput to x, f the BSDF (cosine included), |ê × ω| / r the arc length on
+// the sphere of directions per unit edge length. Covers shadows and anything else seen from a
+// surface point (occluders, moving lights' outlines); exact where visibility is the whole
+// derivative (black occluders and constant emitters moving, scattering surfaces still). Scenes
+// with media or null surfaces are refused (InputError).
+struct SecondaryOptions {
+  int camera = 0;
+  int spp = 4;  // camera paths per pixel
+  uint64_t seed = 0;
+  std::vector<int> meshes;   // as BoundaryOptions::meshes
+  float side_angle = 1e-5f;  // radians
+};
+BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& adjoint, const SecondaryOptions& options);
 
 // Chain rule from vertex gradients into a rigid pose about `pivot`: positions p = pivot + t +
 // R(r) · (s ⊙ (p₀ − pivot)) at t = 0, r = 0 (axis-angle), s = 1.

@@ -403,3 +403,94 @@ TEST_CASE("an emitting sphere mesh: its silhouette loop among 2208 faces", "[bou
   check_pose_derivative(*scene, mi, s, 0.03, "sphere scale");
   check_pose_derivative(*scene, mi, t, 0.05, "sphere translate");
 }
+
+namespace {
+
+// A diffuse floor and back wall lit by a small light above them, a black square between light
+// and floor casting a shadow; the camera looks at the floor and sees neither the light nor the
+// square.
+nlohmann::json shadow_scene(int max_depth) {
+  nlohmann::json j = base_scene(max_depth);
+  j["cameras"][0]["origin"] = {0, 0.6, 3};
+  j["cameras"][0]["target"] = {0, 0, 0};
+  j["materials"]["white"] = {{"type", "diffuse"}, {"albedo", {0.8, 0.8, 0.8}}};
+  j["shapes"].push_back({{"name", "floor"},
+                         {"type", "rectangle"},
+                         {"material", "white"},
+                         {"transform", {{"scale", 2}, {"rotate", {{"axis", {1, 0, 0}}, {"angle", -90}}}}}});
+  // A wall behind: light reaches the floor after a bounce too (when the depth allows), through
+  // the same shadowing.
+  j["shapes"].push_back({{"name", "wall"},
+                         {"type", "rectangle"},
+                         {"material", "white"},
+                         {"transform", {{"scale", 2}, {"translate", {0, 1, -1.5}}}}});
+  j["shapes"].push_back(emitter_shape(
+      "light", "rectangle",
+      {{"scale", 0.3}, {"rotate", {{"axis", {1, 0, 0}}, {"angle", 90}}}, {"translate", {0, 2, 0}}}, {10, 10, 10}));
+  j["shapes"].push_back(emitter_shape(
+      "blocker", "rectangle",
+      {{"scale", 0.25}, {"rotate", {{"axis", {1, 0, 0}}, {"angle", -90}}}, {"translate", {0.1, 1.2, 0.05}}}, nullptr));
+  return j;
+}
+
+// Primary + secondary boundary terms along a pose direction, over seeds.
+Estimate visibility_derivative(const Scene& scene, int mi, const Vec3f& pivot, const Image& adjoint,
+                               const PoseDirection& dir, int seeds, double* secondary_share = nullptr) {
+  std::vector<double> xs;
+  double secondary_sum = 0, total_sum = 0;
+  for (int s = 0; s < seeds; ++s) {
+    BoundaryOptions o;
+    o.samples = 8192;
+    o.seed = uint64_t(500 + s);
+    o.meshes = {mi};
+    SecondaryOptions so;
+    so.spp = 4;
+    so.seed = uint64_t(900 + s);
+    so.meshes = {mi};
+    const Mesh& m = scene.meshes[size_t(mi)];
+    const double primary = dir.along(pose_gradient(m, primary_boundary_gradient(scene, adjoint, o).vertices[0], pivot));
+    const double secondary =
+        dir.along(pose_gradient(m, secondary_boundary_gradient(scene, adjoint, so).vertices[0], pivot));
+    xs.push_back(primary + secondary);
+    secondary_sum += secondary;
+    total_sum += primary + secondary;
+  }
+  if (secondary_share) *secondary_share = total_sum != 0 ? secondary_sum / total_sum : 0;
+  return summarize(xs);
+}
+
+}  // namespace
+
+TEST_CASE("secondary visibility: a moving occluder and a moving light move a shadow", "[boundary]") {
+  for (int depth : {2, 4}) {
+    auto scene = build(shadow_scene(depth));
+    const Image ones = constant_adjoint(1.f);
+    struct Case {
+      const char* mesh;
+      PoseDirection dir;
+      double h;
+    };
+    PoseDirection bx, bs, ls, lx;
+    bx.translate = Vec3d(0.3, 1, 0);
+    bs.scale = Vec3d(1, 0, 1);
+    ls.scale = Vec3d(1, 0, 1);
+    lx.translate = Vec3d(1, 0, 0);
+    for (const Case& c :
+         {Case{"blocker", bx, 0.03}, Case{"blocker", bs, 0.05}, Case{"light", lx, 0.05}, Case{"light", ls, 0.1}}) {
+      const int mi = mesh_index(*scene, c.mesh);
+      const Vec3f pivot = centre(scene->meshes[size_t(mi)]);
+      const Estimate fd = finite_difference(*scene, mi, pivot, ones, c.dir, c.h, 8, 16);
+      double share = 0;
+      const Estimate be = visibility_derivative(*scene, mi, pivot, ones, c.dir, 8, &share);
+      const double z = z_score(be, fd);
+      INFO("depth " << depth << ", " << c.mesh << " t " << c.dir.translate.x << "," << c.dir.translate.y << ","
+                    << c.dir.translate.z << " s " << c.dir.scale.x << "," << c.dir.scale.y << "," << c.dir.scale.z
+                    << ": boundary " << be.mean << " ± " << be.stderr_ << " (secondary " << share * 100
+                    << "%), finite differences " << fd.mean << " ± " << fd.stderr_ << ", z " << z);
+      CHECK(std::abs(z) < 4);
+      CHECK(share > 0.99);  // the camera sees neither shape: all of it is secondary
+      CHECK(std::abs(z_score(Estimate{0.0, 0.0}, fd)) > 4);
+      CHECK(std::abs(z_score(Estimate{-be.mean, be.stderr_}, fd)) > 4);
+    }
+  }
+}
