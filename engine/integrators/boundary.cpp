@@ -73,9 +73,10 @@ bool candidate_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye) {
   return front_facing(m, e.f0, eye) != front_facing(m, e.f1, eye);
 }
 
-// The edges of the meshes in `wanted` that can be a discontinuity seen from somewhere: all but
-// those between two coplanar faces with continuous shading.
-EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted) {
+// The edges of the meshes in `wanted` that can be a discontinuity seen from somewhere (all but
+// those between two coplanar faces with continuous shading), or, given an eye, those that are one
+// seen from it.
+EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, const Vec3f* eye = nullptr) {
   EdgeTable table;
   for (int mi : wanted) {
     const Mesh& m = scene.meshes[size_t(mi)];
@@ -127,6 +128,7 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted) {
         e.always = shading_crease(m, e.f0, e.f1, copies, copies + 2);
         keep = e.always || dot(m.face_normals[e.f0], m.face_normals[e.f1]) <= 1.f - 1e-6f;  // can be a silhouette
       }
+      if (keep && eye) keep = candidate_from(scene, e, *eye);
       if (keep)
         table.edges.push_back(e);
       else
@@ -261,7 +263,7 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
 
   // Project and clip every candidate; the sampling table is over clipped projected lengths.
-  const EdgeTable table = edge_topology(scene, wanted);
+  const EdgeTable table = edge_topology(scene, wanted, &cam.origin);
   struct Projected {
     uint32_t edge;
     EndProjection a, b;  // the ends at the edge's p0 and p1
@@ -272,7 +274,6 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   double total = 0;
   for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i) {
     const MeshEdge& e = table.edges[i];
-    if (!candidate_from(scene, e, cam.origin)) continue;
     Projected pr{};
     pr.edge = i;
     if (!project_end(cam, e.p0, e.p1, &pr.a) || !project_end(cam, e.p1, e.p0, &pr.b)) continue;
