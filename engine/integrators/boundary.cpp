@@ -31,7 +31,9 @@ struct EdgeTable {
   std::vector<uint32_t> copies;  // pairs (vertex at p0, vertex at p1) per adjacent face
 };
 
-// Welding key: a position's bits (equal floats weld; −0 and +0 do not, which no loader produces).
+// Welding key: a position's bits, −0 taken as +0 (a sphere's pole copies differ only there).
+// Positions that are merely close do not weld (a sphere's seam: cos 2π ≠ 1 in float); their
+// edges count as boundary edges, which costs samples but no bias where both sides see the same.
 struct PositionKey {
   uint32_t x, y, z;
   bool operator==(const PositionKey& o) const { return x == o.x && y == o.y && z == o.z; }
@@ -41,10 +43,11 @@ struct PositionHash {
 };
 
 uint32_t weld_id(const Vec3f& p, std::unordered_map<PositionKey, uint32_t, PositionHash>& ids) {
+  const float x = p.x + 0.f, y = p.y + 0.f, z = p.z + 0.f;  // −0 + 0 = +0
   PositionKey key;
-  std::memcpy(&key.x, &p.x, 4);
-  std::memcpy(&key.y, &p.y, 4);
-  std::memcpy(&key.z, &p.z, 4);
+  std::memcpy(&key.x, &x, 4);
+  std::memcpy(&key.y, &y, 4);
+  std::memcpy(&key.z, &z, 4);
   return ids.emplace(key, uint32_t(ids.size())).first->second;
 }
 
@@ -243,18 +246,6 @@ void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, Bound
 
 }  // namespace
 
-bool project_point(const Camera& cam, const Vec3f& p, Vec2f* screen, Vec3d* dpx, Vec3d* dpy) {
-  const Vec3d d = Vec3d(p - cam.origin), right(cam.right), up(cam.true_up), forward(cam.forward);
-  const double cx = dot(d, right), cy = dot(d, up), cz = dot(d, forward);
-  if (!(cz > double(cam.near_clip))) return false;
-  const double kx = double(cam.width) / (2.0 * double(cam.tan_x)), ky = double(cam.height) / (2.0 * double(cam.tan_y));
-  screen->x = float(0.5 * double(cam.width) + kx * cx / cz);
-  screen->y = float(0.5 * double(cam.height) - ky * cy / cz);
-  if (dpx) *dpx = (right * cz - forward * cx) * (kx / (cz * cz));
-  if (dpy) *dpy = (up * cz - forward * cy) * (-ky / (cz * cz));
-  return true;
-}
-
 BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));
   BoundaryGradient result = empty_result(scene, cam, adjoint, options.meshes);
@@ -390,16 +381,17 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
             const uint64_t stream = uint64_t(s) << 8 | uint64_t(std::min(vertex, 255));
 
             // One edge sample at this vertex.
-            cdf.clear();
-            index.clear();
-            double total = 0;
-            for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i)
-              if (candidate_from(scene, table.edges[i], sp.p)) {
-                total += double(length(table.edges[i].p1 - table.edges[i].p0));
-                cdf.push_back(total);
-                index.push_back(i);
-              }
-            if (total > 0) {
+            [&] {
+              cdf.clear();
+              index.clear();
+              double total = 0;
+              for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i)
+                if (candidate_from(scene, table.edges[i], sp.p)) {
+                  total += double(length(table.edges[i].p1 - table.edges[i].p0));
+                  cdf.push_back(total);
+                  index.push_back(i);
+                }
+              if (!(total > 0)) return;
               const PathSampler edge_rng(options.seed ^ kEdgeSeed, pixel, stream);
               const double u = double(edge_rng.get(0)) * total;
               const size_t pick =
@@ -411,30 +403,28 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
               const double r = length(p - x);
               const Vec3d plane = cross(p0 - x, p1 - x);
               const double plane_len = length(plane);
-              if (r > 0 && plane_len > 0) {
-                const Vec3d omega = (p - x) / r, n = plane / plane_len;
-                const Vec3f f = bsdf.eval(wo, frame.to_local(Vec3f(omega)));
-                if (!is_zero(f)) {
-                  // The side rays leave from the offset origin: aim them across the edge as seen from there.
-                  const Vec3f origin = offset_origin(sp.p, sp.geometric_normal, Vec3f(omega));
-                  const Vec3d o(origin);
-                  const Vec3d plane_o = cross(p0 - o, p1 - o);
-                  const Vec3d n_o = plane_o / length(plane_o), omega_o = (p - o) / length(p - o);
-                  const PathSampler side(options.seed ^ kSideSeed, pixel, stream);
-                  auto incident = [&](double sign) {
-                    const Vec3f d(normalize(omega_o + n_o * (sign * eps)));
-                    return trace_path<float>(scene, PathStart{Ray{origin, d}, vertex + 1, 0.f, -1}, side, none);
-                  };
-                  const Vec3f jump = incident(-1.0) - incident(1.0);
-                  const Vec3f weighted = beta * f * jump;
-                  const double arc = length(cross(normalize(p1 - p0), omega)) / r;
-                  const double w = (a.x * double(weighted.x) + a.y * double(weighted.y) + a.z * double(weighted.z)) *
-                                   arc * total / r * inv_spp;
-                  if (w != 0.0)
-                    add_to_edge(table, e, n * (w * (1 - t)), n * (w * t), acc[size_t(slot[size_t(e.mesh)])]);
-                }
-              }
-            }
+              if (!(r > 0 && plane_len > 0)) return;  // the edge passes through x
+              const Vec3d omega = (p - x) / r, n = plane / plane_len;
+              const Vec3f f = bsdf.eval(wo, frame.to_local(Vec3f(omega)));
+              if (is_zero(f)) return;
+              // The side rays leave from the offset origin: aim them across the edge as seen from there.
+              const Vec3f origin = offset_origin(sp.p, sp.geometric_normal, Vec3f(omega));
+              const Vec3d o(origin);
+              const Vec3d plane_o = cross(p0 - o, p1 - o);
+              const double plane_o_len = length(plane_o), r_o = length(p - o);
+              if (!(plane_o_len > 0 && r_o > 0)) return;
+              const Vec3d n_o = plane_o / plane_o_len, omega_o = (p - o) / r_o;
+              const PathSampler side(options.seed ^ kSideSeed, pixel, stream);
+              auto incident = [&](double sign) {
+                const Vec3f d(normalize(omega_o + n_o * (sign * eps)));
+                return trace_path<float>(scene, PathStart{Ray{origin, d}, vertex + 1, 0.f, -1}, side, none);
+              };
+              const Vec3f weighted = beta * f * (incident(-1.0) - incident(1.0));
+              const double arc = length(cross(normalize(p1 - p0), omega)) / r;
+              const double w = (a.x * double(weighted.x) + a.y * double(weighted.y) + a.z * double(weighted.z)) * arc *
+                               total / r * inv_spp;
+              if (w != 0.0) add_to_edge(table, e, n * (w * (1 - t)), n * (w * t), acc[size_t(slot[size_t(e.mesh)])]);
+            }();
 
             // Continue by BSDF sampling.
             const Vec2f ub{sampler.get(Dim::at(vertex, Dim::kBsdfU)), sampler.get(Dim::at(vertex, Dim::kBsdfV))};

@@ -101,8 +101,4 @@ struct CameraPoseGradient {
 };
 CameraPoseGradient camera_pose_gradient(const Scene& scene, const BoundaryGradient& g, const Camera& cam);
 
-// Screen position of a world point on the film of `cam` (pixels, Camera's convention) and its
-// Jacobian rows d(px)/dp, d(py)/dp. Returns false behind the near plane.
-bool project_point(const Camera& cam, const Vec3f& p, Vec2f* screen, Vec3d* dpx, Vec3d* dpy);
-
 }  // namespace bl
