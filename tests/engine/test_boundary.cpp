@@ -1,13 +1,15 @@
-// The primary-visibility boundary term of geometry gradients (edge sampling,
-// engine/integrators/boundary.h) on scenes where it is the whole gradient: shapes that emit a
-// constant radiance and do not scatter, seen directly, so moving them changes the image only where
-// their silhouettes cross the film.
+// The boundary (visibility) terms of geometry gradients (edge sampling,
+// engine/integrators/boundary.h) on scenes where they are the whole gradient: what moves is a
+// constant emitter or a black occluder, so moving it changes the image only where its outline
+// crosses the film (primary) or the sphere of directions seen from a surface point (secondary).
 //  - Exact edge integrals: a uniformly emitting square's image sum under scale and depth (every
 //    sample of the estimator carries the same value), and under sideways motion with a ramp adjoint.
-//  - Finite differences in expectation (the visibility makes same-seed differences of a few rays
-//    jump, so both sides are averaged over seeds and compared with |z| < 4) with an occluder in
-//    front and a background behind, and for a rotating cube (split vertices, welded edges);
-//    negative controls: a zero and a negated boundary term fail the same comparison.
+//  - Finite differences in expectation (visibility makes same-seed differences of a few rays jump,
+//    so both sides are averaged over seeds and compared with |z| < 4): an occluder in front and a
+//    background behind, a rotating cube (split vertices, welded edges), a flat-shaded sphere mesh,
+//    a strip crossing the near plane, a moving camera, and shadows moved by an occluder or a light
+//    out of the camera's view (secondary term, depth 2 and 4). Negative controls in each: a zero
+//    and a negated term fail the same comparison (a doubled one for the cube).
 #include <catch2/catch.hpp>
 #include <nlohmann/json.hpp>
 
