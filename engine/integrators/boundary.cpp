@@ -360,8 +360,8 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
     NoObserver none;
     for (int py = rows.begin(); py != rows.end(); ++py)
       for (int px = 0; px < cam.width; ++px) {
-        const Vec3d adj(adjoint.at(px, py, 0), adjoint.at(px, py, 1), adjoint.at(px, py, 2));
-        if (adj.x == 0 && adj.y == 0 && adj.z == 0) continue;
+        const Vec3d a(adjoint.at(px, py, 0), adjoint.at(px, py, 1), adjoint.at(px, py, 2));
+        if (a.x == 0 && a.y == 0 && a.z == 0) continue;
         const uint64_t pixel = uint64_t(py) * uint64_t(cam.width) + uint64_t(px);
         for (int s = 0; s < options.spp; ++s) {
           const PathSampler sampler(options.seed ^ kPathSeed, pixel, uint64_t(s));
@@ -382,44 +382,29 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
 
             // One edge sample at this vertex.
             [&] {
-              // Edges in proportion to the angle they subtend at x, and a direction uniform in that
-              // angle: the arc length on the sphere of directions is then the sampling measure.
               cdf.clear();
               index.clear();
               double total = 0;
-              const Vec3d x(sp.p);
-              for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i) {
-                const MeshEdge& c = table.edges[i];
-                if (!candidate_from(scene, c, sp.p)) continue;
-                const Vec3d a = Vec3d(c.p0) - x, b = Vec3d(c.p1) - x;
-                const double angle = std::atan2(length(cross(a, b)), dot(a, b));
-                if (!(angle > 0)) continue;
-                cdf.push_back(total += angle);
-                index.push_back(i);
-              }
+              for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i)
+                if (candidate_from(scene, table.edges[i], sp.p)) {
+                  total += double(length(table.edges[i].p1 - table.edges[i].p0));
+                  cdf.push_back(total);
+                  index.push_back(i);
+                }
               if (!(total > 0)) return;
               const PathSampler edge_rng(options.seed ^ kEdgeSeed, pixel, stream);
               const double u = double(edge_rng.get(0)) * total;
               const size_t pick =
                   std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
               const MeshEdge& e = table.edges[index[pick]];
-              const Vec3d p0(e.p0), p1(e.p1), a = p0 - x, b = p1 - x;
-              const Vec3d plane = cross(a, b);
-              const double plane_len = length(plane);
-              const Vec3d a_hat = a / length(a), b_hat = b / length(b);
-              const Vec3d c_dir = b_hat - a_hat * dot(a_hat, b_hat);
-              const double c_len = length(c_dir);
-              if (!(plane_len > 0 && c_len > 0)) return;  // the edge passes through x
-              const double phi = double(edge_rng.get(1)) * std::atan2(plane_len, dot(a, b));
-              const Vec3d omega = a_hat * std::cos(phi) + (c_dir / c_len) * std::sin(phi);
-              // Where the ray along ω crosses the edge: t from the distances of its ends to that ray.
-              const double da = length(cross(a, omega)), db = length(cross(b, omega));
-              if (!(da + db > 0)) return;
-              const double t = da / (da + db);
+              const double t = double(edge_rng.get(1));
+              const Vec3d x(sp.p), p0(e.p0), p1(e.p1);
               const Vec3d p = p0 + (p1 - p0) * t;
               const double r = length(p - x);
-              if (!(r > 0)) return;
-              const Vec3d n = plane / plane_len;
+              const Vec3d plane = cross(p0 - x, p1 - x);
+              const double plane_len = length(plane);
+              if (!(r > 0 && plane_len > 0)) return;  // the edge passes through x
+              const Vec3d omega = (p - x) / r, n = plane / plane_len;
               const Vec3f f = bsdf.eval(wo, frame.to_local(Vec3f(omega)));
               if (is_zero(f)) return;
               // The side rays leave from the offset origin: aim them across the edge as seen from there.
@@ -435,8 +420,8 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
                 return trace_path<float>(scene, PathStart{Ray{origin, d}, vertex + 1, 0.f, -1}, side, none);
               };
               const Vec3f weighted = beta * f * (incident(-1.0) - incident(1.0));
-              // dF = ⟨δ, β f ΔL⟩ (n·ṗ / r) dφ, and 1/pdf(φ) = total.
-              const double w = (adj.x * double(weighted.x) + adj.y * double(weighted.y) + adj.z * double(weighted.z)) *
+              const double arc = length(cross(normalize(p1 - p0), omega)) / r;
+              const double w = (a.x * double(weighted.x) + a.y * double(weighted.y) + a.z * double(weighted.z)) * arc *
                                total / r * inv_spp;
               if (w != 0.0) add_to_edge(table, e, n * (w * (1 - t)), n * (w * t), acc[size_t(slot[size_t(e.mesh)])]);
             }();

@@ -67,15 +67,13 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
 
 // Secondary-visibility boundary term: the derivative of what surface points see. Camera paths
 // (`spp` per pixel, BSDF-sampled, max depth as the scene's, no roulette) stop at each surface
-// vertex x; one direction ω towards the candidate edges seen from x (an edge of `meshes` in
-// proportion to the angle it subtends at x, ω uniform in that angle: a linear scan per vertex, no
-// hierarchy yet) meets the edge at p, r = |p − x|, across which the incident radiance jumps; one
-// path on each side (offset by ±`side_angle` along the normal n of the plane through x and the
-// edge) estimates L(ω⁻) − L(ω⁺), and
-//   dF += ⟨a, β f(ω) (L(ω⁻) − L(ω⁺))⟩ · (n·ṗ / r) / pdf(ω),
-// with β the path throughput to x, f the BSDF (cosine included), n·ṗ / r the edge's angular
-// velocity and pdf(ω) = 1 / (the sum of the candidates' angles), per unit arc length on the
-// sphere of directions. Covers shadows and anything else seen from a
+// vertex x; one point p on the candidate edges seen from x (uniform in 3D edge length over the
+// edges of `meshes`: a linear scan per vertex, no hierarchy yet) gives the direction ω = (p − x)/r
+// across which the incident radiance jumps; one path on each side (offset by ±`side_angle` along
+// the normal n of the plane through x and the edge) estimates L(ω⁻) − L(ω⁺), and
+//   dF += ⟨a, β f(ω) (L(ω⁻) − L(ω⁺))⟩ · (n·ṗ / r) · (|ê × ω| / r) / pdf(p),
+// with β the path throughput to x, f the BSDF (cosine included), |ê × ω| / r the arc length on
+// the sphere of directions per unit edge length. Covers shadows and anything else seen from a
 // surface point (occluders, moving lights' outlines); exact where visibility is the whole
 // derivative (black occluders and constant emitters moving, scattering surfaces still). Scenes
 // with media or null surfaces are refused (InputError).
