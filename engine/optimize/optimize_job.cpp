@@ -345,14 +345,14 @@ double add_total_variation(Param& p, double weight) {
   return weight * tv / cells;
 }
 
-// Root-mean-square difference of two parameters after resampling both to (w, h) (images) or to
-// the second one's size (grids).
-double rmse(const Param& a, const Param& b, int w, int h) {
-  std::vector<float> x = a.value, y = b.value;
+// Root-mean-square difference of `values` (laid out as parameter a) and parameter b after
+// resampling both to (w, h) (images) or to b's size (grids).
+double rmse(const Param& a, const std::vector<float>& values, const Param& b, int w, int h) {
+  std::vector<float> x = values, y = b.value;
   if (is_grid(a) && is_grid(b)) {
-    x = resample_grid(a.value, a.shape[2], a.shape[1], a.shape[0], a.shape[3], b.shape[2], b.shape[1], b.shape[0]);
+    x = resample_grid(values, a.shape[2], a.shape[1], a.shape[0], a.shape[3], b.shape[2], b.shape[1], b.shape[0]);
   } else if (a.is_image()) {
-    x = resample(a.value, a.width(), a.height(), a.channels(), w ? w : b.width(), h ? h : b.height());
+    x = resample(values, a.width(), a.height(), a.channels(), w ? w : b.width(), h ? h : b.height());
     y = resample(b.value, b.width(), b.height(), b.channels(), w ? w : b.width(), h ? h : b.height());
   }
   double s = 0;
@@ -911,16 +911,19 @@ class Job {
   }
 
   // RMSE of the first optimized parameter against its ground truth (at rmse_resolution), or −1.
+  // RMSE of `values` (laid out as `param`) against p's ground truth, at the config's RMSE size.
+  double truth_rmse(const OptimizedParam& p, const Param& param, const std::vector<float>& values) const {
+    const Param& gt = *p.ground_truth;
+    return rmse(param, values, gt, c_.rmse_width ? c_.rmse_width : gt.width(),
+                c_.rmse_height ? c_.rmse_height : gt.height());
+  }
+
+  // The RMSE of the run's result so far (the iterate average when averaging).
   double current_rmse() const {
     const OptimizedParam& p = c_.params.front();
     if (!p.ground_truth) return -1;
-    const Param& gt = *p.ground_truth;
-    const int w = c_.rmse_width ? c_.rmse_width : gt.width(), h = c_.rmse_height ? c_.rmse_height : gt.height();
     const Param& param = scene_->params[p.handle];
-    if (p.average_count == 0) return rmse(param, gt, w, h);
-    Param averaged = param;  // the run's result so far: the iterate average
-    averaged.value = p.average;
-    return rmse(averaged, gt, w, h);
+    return truth_rmse(p, param, p.result(param));
   }
 
   void write_log() {
@@ -1107,11 +1110,7 @@ class Job {
     for (auto& p : c_.params) {
       if (p.average_count == 0) continue;
       Param& param = scene_->params[p.handle];
-      if (p.ground_truth) {
-        const Param& gt = *p.ground_truth;
-        last_iterate_rmse[p.name] =
-            rmse(param, gt, c_.rmse_width ? c_.rmse_width : gt.width(), c_.rmse_height ? c_.rmse_height : gt.height());
-      }
+      if (p.ground_truth) last_iterate_rmse[p.name] = truth_rmse(p, param, param.value);
       param.value = p.average;
     }
     scene_->prepare_sampling();
@@ -1170,7 +1169,7 @@ class Job {
           apply_override(*initial_scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
           initial = initial_scene->params[initial_scene->params.find(p.name)];
         }
-        double before = rmse(initial, gt, w, h), after = rmse(param, gt, w, h);
+        double before = truth_rmse(p, initial, initial.value), after = truth_rmse(p, param, param.value);
         if (is_grid(param) && is_grid(gt) && is_grid(initial)) {
           // slices.png: ground truth / initial / final, rows of the same four panels.
           const float vmax = grid_vmax(p, param);
