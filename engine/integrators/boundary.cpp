@@ -238,6 +238,22 @@ void add_to_edge(const EdgeTable& table, const MeshEdge& e, const Vec3d& ga, con
   }
 }
 
+// Mesh index → its entry in result.vertices (−1: not wanted).
+std::vector<int> slots_of(const Scene& scene, const BoundaryGradient& result) {
+  std::vector<int> slot(scene.meshes.size(), -1);
+  for (size_t k = 0; k < result.meshes.size(); ++k) slot[size_t(result.meshes[k])] = int(k);
+  return slot;
+}
+
+// Per-thread gradient buffers shaped like result.vertices, allocated once per worker thread.
+tbb::enumerable_thread_specific<Accumulator> per_thread_buffers(const BoundaryGradient& result) {
+  return tbb::enumerable_thread_specific<Accumulator>([&result] {
+    Accumulator acc(result.vertices.size());
+    for (size_t k = 0; k < acc.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
+    return acc;
+  });
+}
+
 void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, BoundaryGradient& result) {
   for (const Accumulator& acc : per_thread)
     for (size_t k = 0; k < acc.size(); ++k)
@@ -249,12 +265,10 @@ void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, Bound
 BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));
   BoundaryGradient result = empty_result(scene, cam, adjoint, options.meshes);
-  const std::vector<int>& wanted = result.meshes;
-  std::vector<int> slot(scene.meshes.size(), -1);  // mesh → index into the result
-  for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
+  const std::vector<int> slot = slots_of(scene, result);
 
   // Project and clip every candidate; the sampling table is over clipped projected lengths.
-  const EdgeTable table = edge_topology(scene, wanted, &cam.origin);
+  const EdgeTable table = edge_topology(scene, result.meshes, &cam.origin);
   struct Projected {
     uint32_t edge;
     EndProjection a, b;  // the ends at the edge's p0 and p1
@@ -280,11 +294,7 @@ BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   result.samples = n;
   if (projected.empty() || n == 0) return result;
 
-  tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
-    Accumulator acc(wanted.size());
-    for (size_t k = 0; k < wanted.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
-    return acc;
-  });
+  auto per_thread = per_thread_buffers(result);
   // Random numbers of edge sample k: a stream of its own (pixel k, sample index kEdgeStream);
   // dimensions 0 and 1 (the camera's in a render) pick the edge and the point on it.
   constexpr uint64_t kEdgeStream = 0xed9e5a3b1c00ull;
@@ -334,19 +344,13 @@ BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& ad
   BoundaryGradient result = empty_result(scene, cam, adjoint, options.meshes);
   if (!scene.media.empty() || scene.has_null_surfaces)
     throw InputError(scene.source + ": the secondary boundary term does not support media or null surfaces yet");
-  const std::vector<int>& wanted = result.meshes;
-  std::vector<int> slot(scene.meshes.size(), -1);
-  for (size_t k = 0; k < wanted.size(); ++k) slot[size_t(wanted[k])] = int(k);
-  const EdgeTable table = edge_topology(scene, wanted);
+  const std::vector<int> slot = slots_of(scene, result);
+  const EdgeTable table = edge_topology(scene, result.meshes);
   result.edges = int(table.edges.size());
   result.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(std::max(options.spp, 0));
   if (table.edges.empty() || options.spp <= 0) return result;
 
-  tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
-    Accumulator acc(wanted.size());
-    for (size_t k = 0; k < wanted.size(); ++k) acc[k].assign(result.vertices[k].size(), Vec3d(0.0));
-    return acc;
-  });
+  auto per_thread = per_thread_buffers(result);
   // Streams: the camera path (its own seed), and per (sample, vertex) one for the edge choice and
   // one for the two side paths.
   constexpr uint64_t kPathSeed = 0x5ec0ed6e5ull, kEdgeSeed = 0x5ec0ed6e6ull, kSideSeed = 0x5ec0ed6e7ull;

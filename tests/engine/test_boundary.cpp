@@ -11,6 +11,7 @@
 //    out of the camera's view (secondary term, depth 2 and 4). Negative controls in each: a zero
 //    and a negated term fail the same comparison (a doubled one for the cube).
 //  - Analytic secondary term: an occluder's edge across a square light above a point (closed form).
+//  - Refusals: a null surface for the secondary term, an adjoint image of the wrong size.
 #include <catch2/catch.hpp>
 #include <nlohmann/json.hpp>
 
@@ -18,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "engine/core/errors.h"
 #include "engine/integrators/boundary.h"
 #include "engine/integrators/render.h"
 #include "engine/scene/scene_load.h"
@@ -561,4 +563,28 @@ TEST_CASE("secondary visibility, analytic: an occluder's edge across a square li
   // The comparison has the power to see a factor of two (e.g. a missing H/h) or a lost sign.
   CHECK(std::abs(0.5 * est.mean - exact) > 4 * est.stderr_);
   CHECK(std::abs(-est.mean - exact) > 4 * est.stderr_);
+}
+
+TEST_CASE("the boundary terms refuse what they do not handle, in one line", "[boundary]") {
+  nlohmann::json j = shadow_scene(2);
+  j["materials"]["boundary"] = {{"type", "null"}};
+  j["shapes"].push_back({{"name", "glass"},
+                         {"type", "rectangle"},
+                         {"material", "boundary"},
+                         {"transform", {{"scale", 0.2}, {"translate", {0, 0.5, 0}}}}});
+  auto scene = build(j);
+  SecondaryOptions so;
+  so.spp = 1;
+  try {
+    secondary_boundary_gradient(*scene, constant_adjoint(1.f), so);
+    FAIL("a scene with a null surface accepted by the secondary term");
+  } catch (const InputError& e) {
+    CHECK(std::string(e.what()).find("null surfaces") != std::string::npos);
+    CHECK(std::string(e.what()).find('\n') == std::string::npos);
+  }
+  // An adjoint image of the wrong size is an error naming both sizes, for either term.
+  const Image small(8, 8, 3);
+  CHECK_THROWS_WITH(primary_boundary_gradient(*scene, small, BoundaryOptions{}),
+                    Catch::Contains("8x8x3") && Catch::Contains("64x64x3"));
+  CHECK_THROWS_AS(secondary_boundary_gradient(*scene, small, so), InputError);
 }
