@@ -15,6 +15,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/integrators/boundary.h"
+#include "engine/integrators/interior.h"
 #include "engine/integrators/render.h"
 #include "engine/scene/scene_load.h"
 
@@ -61,7 +62,7 @@ int main(int argc, char** argv) {
     BoundaryOptions bo;
     bo.samples = samples;
     double times[2];
-    BoundaryGradient g;
+    GeometryGradient g;
     for (double& t : times) {
       t0 = std::chrono::steady_clock::now();
       g = primary_boundary_gradient(*scene, ones, bo);
@@ -74,10 +75,11 @@ int main(int argc, char** argv) {
     const double setup = seconds_since(t0);
     double secondary = 0;
     if (secondary_spp > 0) {
-      SecondaryOptions so;
+      PathGeometryOptions so;
       so.spp = secondary_spp;
+      so.interior = false;
       t0 = std::chrono::steady_clock::now();
-      secondary_boundary_gradient(*scene, ones, so);
+      path_geometry_gradient(*scene, ones, so);
       secondary = seconds_since(t0);
     }
     size_t triangles = 0;

@@ -36,6 +36,7 @@ namespace {
 //    −⟨δ, contribution⟩/(σ̄ − σ_t), found by tracking the same ray again with the same numbers.
 struct ReplayObserver {
   static constexpr bool kActive = true;
+  void surface(int, const Ray&, const Hit&, const SurfacePoint&) {}
   const Scene& scene;
   GradientAccumulator& grads;
   Vec3f delta;                // ∂loss/∂(this sample's radiance)
@@ -136,6 +137,7 @@ struct ReplayObserver {
 // Emission and NEE terms are local and handled exactly as in replay.
 struct RadiativeObserver {
   static constexpr bool kActive = true;
+  void surface(int, const Ray&, const Hit&, const SurfacePoint&) {}
   const Scene& scene;
   GradientAccumulator& grads;
   Vec3f delta;

@@ -31,9 +31,8 @@
 // from the camera in a band; the band's inner border moves with the mesh (a smooth-shaded
 // emitting sphere of 48 segments: a fifth of the derivative; flat shading has no such band).
 //
-// Not here yet (issue 9): the interior term, an edge hierarchy for the secondary term, and
-// parameters in grad/optimize. This is exact for what it covers: e.g. a shape emitting constant
-// radiance seen directly.
+// The interior and secondary-visibility terms are in interior.h. This is exact for what it covers:
+// e.g. a shape emitting constant radiance seen directly.
 #include <cstdint>
 #include <vector>
 
@@ -44,10 +43,14 @@ namespace bl {
 
 // The derivative of F with respect to every vertex position of every mesh (world space):
 // gradients[mesh][vertex]. Meshes whose gradient is not wanted may be left out with `meshes`
-// (indices; empty = all).
-struct BoundaryGradient {
+// (indices; empty = all). The interior term (interior.h) also differentiates with respect to the
+// meshes' stored vertex normals (a rigid pose rotates them) and the camera ray's origin and
+// direction; the boundary terms leave those zero.
+struct GeometryGradient {
   std::vector<int> meshes;  // which mesh each entry of `vertices` is
   std::vector<std::vector<Vec3d>> vertices;
+  std::vector<std::vector<Vec3d>> normals;       // like `vertices` for meshes with vertex normals, else empty
+  Vec3d camera_origin{0.0}, camera_rotate{0.0};  // interior term only (axis-angle about the origin)
   uint64_t samples = 0;
   double edge_length = 0;  // total projected length of the candidate edges on the film (pixels)
   int edges = 0;           // candidate edges
@@ -63,28 +66,10 @@ struct BoundaryOptions {
 
 // Primary-visibility boundary term of dF/d(vertex positions) for F = Σ_p ⟨adjoint_p, I_p⟩
 // (`adjoint` has the camera's size and 3 channels).
-BoundaryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options);
+GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options);
 
-// Secondary-visibility boundary term: the derivative of what surface points see. Camera paths
-// (`spp` per pixel, BSDF-sampled, max depth as the scene's, no roulette) stop at each surface
-// vertex x; one point p on the candidate edges seen from x (uniform in 3D edge length over the
-// edges of `meshes`: a linear scan per vertex, no hierarchy yet) gives the direction ω = (p − x)/r
-// across which the incident radiance jumps; one path on each side (offset by ±`side_angle` along
-// the normal n of the plane through x and the edge) estimates L(ω⁻) − L(ω⁺), and
-//   dF += ⟨a, β f(ω) (L(ω⁻) − L(ω⁺))⟩ · (n·ṗ / r) · (|ê × ω| / r) / pdf(p),
-// with β the path throughput to x, f the BSDF (cosine included), |ê × ω| / r the arc length on
-// the sphere of directions per unit edge length. Covers shadows and anything else seen from a
-// surface point (occluders, moving lights' outlines); exact where visibility is the whole
-// derivative (black occluders and constant emitters moving, scattering surfaces still). Scenes
-// with media or null surfaces are refused (InputError).
-struct SecondaryOptions {
-  int camera = 0;
-  int spp = 4;  // camera paths per pixel
-  uint64_t seed = 0;
-  std::vector<int> meshes;   // as BoundaryOptions::meshes
-  float side_angle = 1e-5f;  // radians
-};
-BoundaryGradient secondary_boundary_gradient(const Scene& scene, const Image& adjoint, const SecondaryOptions& options);
+// The secondary-visibility term is computed with the interior term, on the same camera paths:
+// path_geometry_gradient (interior.h).
 
 // Chain rule from vertex gradients into a rigid pose about `pivot`: positions p = pivot + t +
 // R(r) · (s ⊙ (p₀ − pivot)) at t = 0, r = 0 (axis-angle), s = 1.
@@ -92,6 +77,12 @@ struct PoseGradient {
   Vec3d translate, rotate, scale;
 };
 PoseGradient pose_gradient(const Mesh& mesh, const std::vector<Vec3d>& vertex_gradient, const Vec3f& pivot);
+// The same with the gradient of the mesh's vertex normals (`normal_gradient`, empty for none),
+// which turn with the rotation and follow the inverse transpose of the scale (renormalised).
+PoseGradient pose_gradient(const Mesh& mesh, const std::vector<Vec3d>& vertex_gradient,
+                           const std::vector<Vec3d>& normal_gradient, const Vec3f& pivot);
+// Element-wise sum of two gradients over the same meshes (e.g. interior + boundary terms).
+GeometryGradient& operator+=(GeometryGradient& a, const GeometryGradient& b);
 
 // Chain rule into a rigid motion of the camera (its frame moves with it): translating it by δ or
 // rotating it by ω (axis-angle, world axes, about its origin) moves every point relative to it by
@@ -99,6 +90,6 @@ PoseGradient pose_gradient(const Mesh& mesh, const std::vector<Vec3d>& vertex_gr
 struct CameraPoseGradient {
   Vec3d origin, rotate;
 };
-CameraPoseGradient camera_pose_gradient(const Scene& scene, const BoundaryGradient& g, const Camera& cam);
+CameraPoseGradient camera_pose_gradient(const Scene& scene, const GeometryGradient& g, const Camera& cam);
 
 }  // namespace bl

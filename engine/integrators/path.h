@@ -27,6 +27,10 @@ struct EmissionRef {
   int area = -1;  // index into Scene::area_emitters; -1 = environment
   Vec2f uv;
   Vec3f direction;  // for the environment: direction towards it
+  // For a light sample on an area emitter: the sampled triangle and barycentrics (geometry
+  // gradients move the point with its triangle).
+  int triangle = -1;
+  float b1 = 0.f, b2 = 0.f;
 };
 
 // What a derivative shader needs about a scattering vertex.
@@ -74,6 +78,8 @@ struct NoObserver {
   bool nee_may_contribute(int) const { return true; }
   // Iteration `vertex` of the loop reached `site`: a mesh index, kSiteEscape or kSiteMedium.
   void reached(int, int) {}
+  // Iteration `vertex` hit a surface (active observers only): the ray, its hit and the point.
+  void surface(int, const Ray&, const Hit&, const SurfacePoint&) {}
   // Whether the path is worth following into iteration `vertex` (a replay stops after the last
   // vertex that can produce a derivative).
   bool follows(int) const { return true; }
@@ -377,6 +383,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
     observer.reached(vertex, hit.mesh);
     const SurfacePoint sp = scene.surface_point(hit, ray);
+    if constexpr (Observer::kActive) observer.surface(vertex, ray, hit, sp);
     const Mesh& mesh = scene.meshes[size_t(sp.mesh)];
     const Material& material = scene.materials[size_t(mesh.material)];
     const Vec3f wo_world = -ray.direction;
@@ -432,7 +439,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
                                                : length(es.point - origin) * (1.f - 1e-3f);
           if (!observer.occluded(scene, vertex, origin, es.wi, tmax)) {
-            EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
+            EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi, es.triangle, es.b1, es.b2};
             Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                                       : scene.environment.eval<T>(params, es.wi);
             T tr = T(1.f);  // transmittance of the shadow ray through media

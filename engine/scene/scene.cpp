@@ -148,6 +148,9 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
   float cos_geometric = std::abs(dot(n, s.wi));
   if (cos_shading <= 0.f || cos_geometric <= 0.f) return {};
   s.pdf = d2 / (cos_geometric * e.total_area);
+  s.triangle = int(t);
+  s.b1 = b1;
+  s.b2 = b2;
   return s;
 }
 

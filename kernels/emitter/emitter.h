@@ -15,6 +15,8 @@ struct EmitterSample {
   float pdf = 0.f;       // solid angle, excluding the light-selection probability
   Vec2f uv;              // where the radiance texture is read
   Vec3f point;
+  int triangle = -1;         // area emitters: the sampled triangle of the emitter's mesh
+  float b1 = 0.f, b2 = 0.f;  // and the point's barycentrics in it
 };
 
 }  // namespace bl

@@ -1,0 +1,523 @@
+#include "engine/integrators/interior.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <string>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include "engine/core/dual.h"
+#include "engine/core/errors.h"
+#include "engine/integrators/edges.h"
+#include "engine/integrators/path.h"
+
+namespace bl {
+
+using namespace interior_detail;
+
+namespace {
+
+// One surface vertex of a path and what its derivative needs.
+struct PathVertex {
+  int mesh = -1, triangle = -1;
+  Vec3d origin, direction;  // the ray that hit it (fixed direction)
+  double sign = 1.0;        // −1: a two-sided surface seen from its back (the frame's normal flips)
+  bool scattered = false;   // a BSDF sample continued the path from here
+  Vec3d next_direction;
+  Vec3f radiance_so_far;  // at the continuation (everything up to and including this vertex)
+  int light = 0;          // light sample that contributed: 0 none, 1 area emitter, 2 environment
+  int light_emitter = -1, light_triangle = -1;
+  double light_b1 = 0, light_b2 = 0;
+  Vec3d light_direction;
+  Vec3f light_contribution;
+  bool emitter_hit = false;  // an emitter hit here by the previous vertex's BSDF sample (MIS-weighted)
+  Vec3f emitter_hit_contribution;
+  bool escape = false;  // the continuation from here escaped to the environment (MIS-weighted)
+  Vec3f escape_contribution;
+  Vec3f beta{1.f};  // throughput arriving here
+  Vec3f albedo, p, geometric_normal;
+};
+
+// Records a path's vertices while the path loop computes its radiance.
+struct VertexRecorder : NoObserver {
+  static constexpr bool kActive = true;
+  const Scene* scene = nullptr;
+  std::vector<PathVertex>* path = nullptr;
+  int current = 0;
+  bool escaped = false;
+  Vec3f next_beta{1.f};  // throughput of the next vertex
+
+  void reached(int vertex, int site) {
+    current = vertex;
+    escaped = site == kSiteEscape;
+  }
+  void surface(int vertex, const Ray& ray, const Hit& hit, const SurfacePoint& sp) {
+    path->resize(size_t(vertex));
+    PathVertex& v = path->back();
+    v = PathVertex{};
+    v.mesh = hit.mesh;
+    v.triangle = hit.triangle;
+    v.origin = Vec3d(ray.origin);
+    v.direction = Vec3d(ray.direction);
+    const Material& material = scene->materials[size_t(scene->meshes[size_t(hit.mesh)].material)];
+    if (material.two_sided && dot(sp.shading_normal, -ray.direction) < 0.f) v.sign = -1.0;
+    v.beta = next_beta;
+    v.albedo = material.at<float>(scene->params, sp.uv, sp.color).albedo;
+    v.p = sp.p;
+    v.geometric_normal = sp.geometric_normal;
+  }
+  void emission(const EmissionRef& ref, const Vec3f&, const Vec3f& contribution) {
+    if (current <= 1) return;  // seen from the camera: weight 1
+    if (escaped) {
+      PathVertex& v = (*path)[size_t(current - 2)];
+      v.escape = true;
+      v.escape_contribution = contribution;
+    } else if (ref.area >= 0) {
+      PathVertex& v = (*path)[size_t(current - 1)];
+      v.emitter_hit = true;
+      v.emitter_hit_contribution = contribution;
+    }
+  }
+  void nee(const VertexRef& vref, const Vec3f&, const EmissionRef& e, const Vec3f&, const Vec3f&,
+           const Vec3f& contribution) {
+    PathVertex& v = (*path)[size_t(vref.vertex - 1)];
+    v.light = e.area >= 0 ? 1 : 2;
+    v.light_emitter = e.area;
+    v.light_triangle = e.triangle;
+    v.light_b1 = e.b1;
+    v.light_b2 = e.b2;
+    v.light_direction = Vec3d(e.direction);
+    v.light_contribution = contribution;
+  }
+  void scatter(const VertexRef& vref, const Vec3f&, const Vec3f& f, float pdf, float q, const Vec3f& beta_before,
+               const Vec3f& radiance_so_far, int, const Ray& next) {
+    next_beta = beta_before * f * (1.f / (pdf * q));
+    PathVertex& v = (*path)[size_t(vref.vertex - 1)];
+    v.scattered = true;
+    v.next_direction = Vec3d(next.direction);
+    v.radiance_so_far = radiance_so_far;
+  }
+};
+
+struct Accumulator {
+  std::vector<std::vector<Vec3d>> vertices, normals;
+  Vec3d camera_origin{0.0}, camera_rotate{0.0};
+  std::vector<double> log_area;  // per area emitter: derivative with respect to log(total area)
+};
+
+double inner(const Vec3d& a, const Vec3f& c) { return a.x * double(c.x) + a.y * double(c.y) + a.z * double(c.z); }
+
+template <int N>
+Vec3<Dual<double, N>> variable(const Vec3d& v, int first) {
+  using D = Dual<double, N>;
+  return {D::variable(v.x, first), D::variable(v.y, first + 1), D::variable(v.z, first + 2)};
+}
+
+template <int N>
+Vec3d tangent(const Dual<double, N>& f, int first) {
+  return {f.d[size_t(first)], f.d[size_t(first + 1)], f.d[size_t(first + 2)]};
+}
+
+// Corner positions (and vertex normals, when the mesh has them) of a triangle, in double.
+struct Corners {
+  Vec3d p[3], n[3];
+  uint32_t index[3];
+  bool smooth = false;
+};
+Corners corners(const Mesh& mesh, int triangle) {
+  Corners c;
+  c.smooth = !mesh.normals.empty();
+  for (int i = 0; i < 3; ++i) {
+    c.index[i] = mesh.indices[3 * size_t(triangle) + size_t(i)];
+    c.p[i] = Vec3d(mesh.positions[c.index[i]]);
+    if (c.smooth) c.n[i] = Vec3d(mesh.normals[c.index[i]]);
+  }
+  return c;
+}
+
+// Pulls one path's derivatives back from its last vertex to the camera.
+void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
+                   const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
+                   const std::vector<int>& slot, bool interior, Accumulator& acc) {
+  const double select = double(scene.emitter_select_probability());
+  const int n = int(path.size());
+  Vec3d carry_x(0.0);       // d/d(origin of the ray that hit vertex k), handed to vertex k − 1
+  Vec3d carry_m_prev(0.0);  // d/d(shading normal of vertex k − 1) from vertex k's MIS weight
+  for (int k = n - 1; k >= 0; --k) {
+    const PathVertex& v = path[size_t(k)];
+    const Mesh& mesh = scene.meshes[size_t(v.mesh)];
+    const Corners c = corners(mesh, v.triangle);
+    const MovingHit<double>& h = hits[size_t(k)];
+    Vec3d adj_x = carry_x + boundary_x[size_t(k)], adj_m = carry_m_prev, adj_origin(0.0);
+    carry_x = Vec3d(0.0);
+    carry_m_prev = Vec3d(0.0);
+
+    if (interior && v.scattered) {
+      const double g = inner(a, radiance - v.radiance_so_far);
+      if (g != 0.0) {
+        const auto l = log_continuation(variable<3>(h.m, 0), v.sign, v.next_direction);
+        adj_m += tangent(l, 0) * g;
+      }
+    }
+    if (interior && v.escape) {
+      const double g = inner(a, v.escape_contribution);
+      if (g != 0.0) {
+        const double p_light = select * double(scene.environment.pdf(Vec3f(v.next_direction)));
+        const auto l = log_environment_hit_weight(variable<3>(h.m, 0), v.sign, v.next_direction, p_light);
+        adj_m += tangent(l, 0) * g;
+      }
+    }
+    if (interior && v.light == 2) {
+      const double g = inner(a, v.light_contribution);
+      if (g != 0.0) {
+        const double p_light = select * double(scene.environment.pdf(Vec3f(v.light_direction)));
+        const auto l = log_environment_sample(variable<3>(h.m, 0), v.sign, v.light_direction, p_light);
+        adj_m += tangent(l, 0) * g;
+      }
+    } else if (interior && v.light == 1) {
+      const double g = inner(a, v.light_contribution);
+      if (g != 0.0) {
+        using D = Dual<double, 16>;
+        const AreaEmitter& e = scene.area_emitters[size_t(v.light_emitter)];
+        const Mesh& em = scene.meshes[size_t(e.mesh)];
+        const Corners q = corners(em, v.light_triangle);
+        const Vec3<D> qd[3] = {variable<16>(q.p[0], 6), variable<16>(q.p[1], 9), variable<16>(q.p[2], 12)};
+        const D l = log_light_sample(variable<16>(h.x, 0), variable<16>(h.m, 3), v.sign, qd, v.light_b1, v.light_b2,
+                                     D::variable(std::log(double(e.total_area)), 15), select);
+        adj_x += tangent(l, 0) * g;
+        adj_m += tangent(l, 3) * g;
+        if (slot[size_t(e.mesh)] >= 0) {
+          std::vector<Vec3d>& gv = acc.vertices[size_t(slot[size_t(e.mesh)])];
+          for (int i = 0; i < 3; ++i) gv[q.index[i]] += tangent(l, 6 + 3 * i) * g;
+          acc.log_area[size_t(v.light_emitter)] += l.d[15] * g;
+        }
+      }
+    }
+    if (interior && v.emitter_hit && k > 0) {
+      const double g = inner(a, v.emitter_hit_contribution);
+      if (g != 0.0) {
+        using D = Dual<double, 19>;
+        const AreaEmitter& e = scene.area_emitters[size_t(mesh.emitter)];
+        const Vec3<D> pd[3] = {variable<19>(c.p[0], 9), variable<19>(c.p[1], 12), variable<19>(c.p[2], 15)};
+        const D l = log_emitter_hit_weight(variable<19>(hits[size_t(k - 1)].m, 0), path[size_t(k - 1)].sign,
+                                           v.direction, variable<19>(v.origin, 3), variable<19>(h.x, 6), pd,
+                                           D::variable(std::log(double(e.total_area)), 18), select);
+        carry_m_prev += tangent(l, 0) * g;
+        adj_origin += tangent(l, 3) * g;
+        adj_x += tangent(l, 6) * g;
+        if (slot[size_t(v.mesh)] >= 0) {
+          std::vector<Vec3d>& gv = acc.vertices[size_t(slot[size_t(v.mesh)])];
+          for (int i = 0; i < 3; ++i) gv[c.index[i]] += tangent(l, 9 + 3 * i) * g;
+          acc.log_area[size_t(mesh.emitter)] += l.d[18] * g;
+        }
+      }
+    }
+
+    // The hit itself: x and m as functions of the ray's origin and direction, the triangle's
+    // corners and vertex normals.
+    if (adj_x.x == 0 && adj_x.y == 0 && adj_x.z == 0 && adj_m.x == 0 && adj_m.y == 0 && adj_m.z == 0) {
+      carry_x = adj_origin;
+      continue;
+    }
+    using D = Dual<double, 24>;
+    const Vec3<D> pd[3] = {variable<24>(c.p[0], 6), variable<24>(c.p[1], 9), variable<24>(c.p[2], 12)};
+    const Vec3<D> nd[3] = {variable<24>(c.n[0], 15), variable<24>(c.n[1], 18), variable<24>(c.n[2], 21)};
+    const MovingHit<D> hd = moving_hit(variable<24>(v.origin, 0), variable<24>(v.direction, 3), pd[0], pd[1], pd[2],
+                                       c.smooth ? nd : nullptr);
+    std::array<double, 24> adj{};
+    for (int i = 0; i < 24; ++i)
+      adj[size_t(i)] = adj_x.x * hd.x.x.d[size_t(i)] + adj_x.y * hd.x.y.d[size_t(i)] + adj_x.z * hd.x.z.d[size_t(i)] +
+                       adj_m.x * hd.m.x.d[size_t(i)] + adj_m.y * hd.m.y.d[size_t(i)] + adj_m.z * hd.m.z.d[size_t(i)];
+    auto at = [&](int first) { return Vec3d(adj[size_t(first)], adj[size_t(first + 1)], adj[size_t(first + 2)]); };
+    adj_origin += at(0);
+    if (k == 0) {
+      acc.camera_origin += adj_origin;
+      acc.camera_rotate += cross(v.direction, at(3));  // d turns by ω × d
+    } else {
+      carry_x = adj_origin;  // the origin is x_{k−1} offset along its normal by a constant
+    }
+    if (slot[size_t(v.mesh)] >= 0) {
+      const size_t s = size_t(slot[size_t(v.mesh)]);
+      for (int i = 0; i < 3; ++i) {
+        acc.vertices[s][c.index[i]] += at(6 + 3 * i);
+        if (c.smooth) acc.normals[s][c.index[i]] += at(15 + 3 * i);
+      }
+    }
+  }
+}
+
+// Secondary visibility at path vertex k (x = its point): one point p on the candidate edges seen
+// from x, uniform in 3D length, ω = (p − x)/r, n the unit normal of the plane through x and the
+// edge, and one path on each side (±side_angle along n) from x. With the parameterization of the
+// interior term, the integrand of the BSDF-sampled estimate jumps across ω and its directions are
+// fixed, so its flux is [h⁻ − h⁺] · n·(ṗ − ẋ)/r; a light sample moves with its emitter instead, so
+// where a side sees an area emitter directly its light-sampled share h_N (MIS weight w_light)
+// crosses the edge at the relative angular velocity n·(ṗ − ẋ)/r − n·(ẏ − ẋ)/r_y. h is β f L.
+struct EdgeSampling {
+  const Scene* scene = nullptr;
+  const edges::EdgeTable* moving = nullptr;  // edges of the meshes that get gradients
+  const edges::EdgeTable* all = nullptr;     // every mesh's edges (x moves, or an emitter moves)
+  const std::vector<int>* slot = nullptr;
+  double side_angle = 1e-5;
+  bool emitter_moves = false;
+  uint64_t seed = 0;
+  int samples = 1;  // edge samples per vertex
+};
+
+// One point at parameter t on edge e, sampled with density 1/inv_pdf per unit length.
+void one_edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<double>& h, const Vec3d& a,
+                     const edges::EdgeTable& table, const edges::MeshEdge& e, double t, double inv_pdf, uint64_t pixel,
+                     uint64_t stream, int vertex, Accumulator& acc, Vec3d& adj_x) {
+  constexpr uint64_t kSideSeed = 0x5ec0ed6e7ull;
+  const Scene& scene = *es.scene;
+  const Vec3d x(v.p), p0(e.p0), p1(e.p1);
+  const Vec3d p = p0 + (p1 - p0) * t;
+  const double r = length(p - x);
+  const Vec3d plane = cross(p0 - x, p1 - x);
+  const double plane_len = length(plane);
+  if (!(r > 0 && plane_len > 0)) return;  // the edge passes through x
+  const Vec3d omega = (p - x) / r, n = plane / plane_len;
+  const Vec3d normal = unit_normal(h.m, v.sign);
+  const double cos_x = dot(normal, omega);
+  if (!(cos_x > 0)) return;  // diffuse: nothing arrives from below
+  const Vec3f f = v.albedo * float(cos_x * kInvPiD);
+  if (is_zero(f)) return;
+  const float p_bsdf = float(cos_x * kInvPiD);
+  const float select = scene.emitter_select_probability();
+  const Vec3f origin = offset_origin(v.p, v.geometric_normal, Vec3f(omega));
+  const Vec3d o(origin);
+  const Vec3d plane_o = cross(p0 - o, p1 - o);
+  const double plane_o_len = length(plane_o), r_o = length(p - o);
+  if (!(plane_o_len > 0 && r_o > 0)) return;
+  const Vec3d n_o = plane_o / plane_o_len, omega_o = (p - o) / r_o;
+  // Hidden behind something nearer, the edge is no discontinuity of what x sees: no side paths.
+  if (scene.occluded(origin, Vec3f(omega_o), float(r_o * (1.0 - 1e-3)))) return;
+  const PathSampler side(es.seed ^ kSideSeed, pixel, stream);
+  const double jacobian = length(cross(normalize(p1 - p0), omega)) / r * inv_pdf;  // arc length / pdf
+  NoObserver none;
+  double fixed = 0;  // ⟨a, h_fixed⁻ − h_fixed⁺⟩
+  for (int side_index = 0; side_index < 2; ++side_index) {
+    const double sign = side_index == 0 ? -1.0 : 1.0;
+    const Vec3f d(normalize(omega_o + n_o * (sign * es.side_angle)));
+    const Ray ray{origin, d};
+    const Vec3f bsdf_part = v.beta * f * trace_path<float>(scene, PathStart{ray, vertex + 1, p_bsdf, -1}, side, none);
+    double h_fixed = inner(a, bsdf_part);
+    // The light-sampled share of what this side sees directly.
+    const Hit hit = scene.geometry->intersect(ray);
+    if (hit.mesh < 0) {
+      if (scene.environment.present) {
+        const float w = power_heuristic(select * scene.environment.pdf(d), p_bsdf);
+        h_fixed += inner(a, v.beta * f * scene.environment.eval<float>(scene.params, d) * w);
+      }
+    } else {
+      const Mesh& m = scene.meshes[size_t(hit.mesh)];
+      if (m.emitter >= 0) {
+        const SurfacePoint sp = scene.surface_point(hit, ray);
+        const float cos_shading = dot(sp.shading_normal, -d);
+        const AreaEmitter& emitter = scene.area_emitters[size_t(m.emitter)];
+        const float p_light = select * emitter.pdf(hit.t, std::abs(dot(sp.geometric_normal, d)));
+        const Vec3f le = emitter.eval<float>(scene.params, sp.uv, cos_shading);
+        const double h_light = inner(a, v.beta * f * le * power_heuristic(p_light, p_bsdf));
+        if (h_light != 0.0) {
+          // Its point moves with the emitter's triangle: −(±) c n·(ẏ − ẋ), c = h_light·J/r_y.
+          const double c = (sign < 0 ? 1.0 : -1.0) * h_light * jacobian / double(hit.t);
+          if ((*es.slot)[size_t(hit.mesh)] >= 0) {
+            std::vector<Vec3d>& g = acc.vertices[size_t((*es.slot)[size_t(hit.mesh)])];
+            const double b[3] = {1.0 - double(hit.b1) - double(hit.b2), double(hit.b1), double(hit.b2)};
+            for (int i = 0; i < 3; ++i) g[m.indices[3 * size_t(hit.triangle) + size_t(i)]] -= n * (c * b[i]);
+          }
+          adj_x += n * c;
+          h_fixed += h_light;  // it crosses with the edge as well: n·(ṗ − ẋ)/r below
+        }
+      }
+    }
+    fixed += sign < 0 ? h_fixed : -h_fixed;
+  }
+  const double c_e = fixed * jacobian / r;
+  if (c_e == 0.0) return;
+  adj_x -= n * c_e;
+  const int s = (*es.slot)[size_t(e.mesh)];
+  if (s >= 0) edges::add_to_edge(table, e, n * (c_e * (1 - t)), n * (c_e * t), acc.vertices[size_t(s)]);
+}
+
+void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<double>& h, bool x_moves, const Vec3d& a,
+                 uint64_t pixel, uint64_t stream, int vertex, std::vector<double>& cdf, std::vector<uint32_t>& index,
+                 Accumulator& acc, Vec3d& adj_x) {
+  constexpr uint64_t kEdgeSeed = 0x5ec0ed6e6ull;
+  const Scene& scene = *es.scene;
+  const edges::EdgeTable& table = (x_moves || es.emitter_moves) ? *es.all : *es.moving;
+  cdf.clear();
+  index.clear();
+  double total = 0;
+  for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i)
+    if (edges::candidate_from(scene, table.edges[i], v.p)) {
+      total += double(length(table.edges[i].p1 - table.edges[i].p0));
+      cdf.push_back(total);
+      index.push_back(i);
+    }
+  if (!(total > 0)) return;
+  const PathSampler edge_rng(es.seed ^ kEdgeSeed, pixel, stream);
+  for (int j = 0; j < es.samples; ++j) {
+    const double u = double(edge_rng.get(2 * j)) * total;
+    const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
+    one_edge_sample(es, v, h, a, table, table.edges[index[pick]], double(edge_rng.get(2 * j + 1)), total / es.samples,
+                    pixel, stream ^ (uint64_t(j) << 40), vertex, acc, adj_x);
+  }
+}
+
+}  // namespace
+
+GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint, const PathGeometryOptions& options) {
+  const Camera& cam = scene.cameras.at(size_t(options.camera));
+  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
+    throw InputError("geometry gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
+                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
+                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
+  check_interior_support(scene);
+  GeometryGradient result;
+  result.meshes = options.meshes;
+  if (result.meshes.empty())
+    for (int i = 0; i < int(scene.meshes.size()); ++i) result.meshes.push_back(i);
+  result.vertices.resize(result.meshes.size());
+  result.normals.resize(result.meshes.size());
+  std::vector<int> slot(scene.meshes.size(), -1);
+  for (size_t k = 0; k < result.meshes.size(); ++k) {
+    const Mesh& m = scene.meshes[size_t(result.meshes[k])];
+    slot[size_t(result.meshes[k])] = int(k);
+    result.vertices[k].assign(m.vertex_count(), Vec3d(0.0));
+    if (!m.normals.empty()) result.normals[k].assign(m.vertex_count(), Vec3d(0.0));
+  }
+  result.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(std::max(options.spp, 0));
+  if (options.spp <= 0) return result;
+
+  tbb::enumerable_thread_specific<Accumulator> per_thread([&] {
+    Accumulator acc;
+    acc.vertices.resize(result.vertices.size());
+    acc.normals.resize(result.normals.size());
+    for (size_t k = 0; k < acc.vertices.size(); ++k) {
+      acc.vertices[k].assign(result.vertices[k].size(), Vec3d(0.0));
+      acc.normals[k].assign(result.normals[k].size(), Vec3d(0.0));
+    }
+    acc.log_area.assign(scene.area_emitters.size(), 0.0);
+    return acc;
+  });
+  constexpr uint64_t kPathSeed = 0x1e7e510f9ull;
+  const double inv_spp = 1.0 / double(options.spp);
+  const int max_depth = scene.settings.max_depth;
+  edges::EdgeTable moving_edges, all_edges;
+  EdgeSampling es;
+  if (options.boundary) {
+    moving_edges = edges::edge_topology(scene, result.meshes);
+    std::vector<int> every(scene.meshes.size());
+    for (size_t i = 0; i < every.size(); ++i) every[i] = int(i);
+    all_edges = edges::edge_topology(scene, every);
+    for (int mi : result.meshes) es.emitter_moves = es.emitter_moves || scene.meshes[size_t(mi)].emitter >= 0;
+    result.edges = int(all_edges.edges.size());
+  }
+  es.scene = &scene;
+  es.moving = &moving_edges;
+  es.all = &all_edges;
+  es.slot = &slot;
+  es.side_angle = double(options.side_angle);
+  es.seed = options.seed;
+  es.samples = std::max(options.edge_samples, 1);
+  tbb::parallel_for(tbb::blocked_range<int>(0, cam.height), [&](const tbb::blocked_range<int>& rows) {
+    Accumulator& acc = per_thread.local();
+    std::vector<PathVertex> path;
+    std::vector<MovingHit<double>> hits;
+    std::vector<Vec3d> boundary_x;
+    std::vector<double> cdf;
+    std::vector<uint32_t> index;
+    VertexRecorder recorder;
+    recorder.scene = &scene;
+    recorder.path = &path;
+    for (int py = rows.begin(); py != rows.end(); ++py)
+      for (int px = 0; px < cam.width; ++px) {
+        const Vec3d a = Vec3d(adjoint.at(px, py, 0), adjoint.at(px, py, 1), adjoint.at(px, py, 2)) * inv_spp;
+        if (a.x == 0 && a.y == 0 && a.z == 0) continue;
+        const uint64_t pixel = uint64_t(py) * uint64_t(cam.width) + uint64_t(px);
+        for (int s = 0; s < options.spp; ++s) {
+          const PathSampler sampler(options.seed ^ kPathSeed, pixel, uint64_t(s));
+          const PathStart start{
+              cam.generate(float(px) + sampler.get(Dim::kPixelX), float(py) + sampler.get(Dim::kPixelY)), 1, 0.f,
+              cam.medium};
+          path.clear();
+          recorder.current = 0;
+          recorder.escaped = false;
+          recorder.next_beta = Vec3f(1.f);
+          const Vec3f radiance = trace_path<float>(scene, start, sampler, recorder);
+          const size_t n = path.size();
+          if (n == 0) continue;
+          hits.resize(n);
+          boundary_x.assign(n, Vec3d(0.0));
+          bool x_moves = options.camera_moves;
+          for (size_t k = 0; k < n; ++k) {
+            const PathVertex& v = path[k];
+            const Corners c = corners(scene.meshes[size_t(v.mesh)], v.triangle);
+            hits[k] = moving_hit(v.origin, v.direction, c.p[0], c.p[1], c.p[2], c.smooth ? c.n : nullptr);
+            x_moves = x_moves || slot[size_t(v.mesh)] >= 0;
+            const int vertex = int(k) + 1;
+            if (options.boundary && (max_depth < 0 || vertex < max_depth))
+              edge_sample(es, v, hits[k], x_moves, a, pixel, uint64_t(s) << 8 | uint64_t(std::min(vertex, 255)), vertex,
+                          cdf, index, acc, boundary_x[k]);
+          }
+          backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, acc);
+        }
+      }
+  });
+
+  std::vector<double> log_area(scene.area_emitters.size(), 0.0);
+  for (const Accumulator& acc : per_thread) {
+    for (size_t k = 0; k < acc.vertices.size(); ++k) {
+      for (size_t i = 0; i < acc.vertices[k].size(); ++i) result.vertices[k][i] += acc.vertices[k][i];
+      for (size_t i = 0; i < acc.normals[k].size(); ++i) result.normals[k][i] += acc.normals[k][i];
+    }
+    result.camera_origin += acc.camera_origin;
+    result.camera_rotate += acc.camera_rotate;
+    for (size_t e = 0; e < log_area.size(); ++e) log_area[e] += acc.log_area[e];
+  }
+  // d log A = Σ_t n̂_t · dc_t / (2A) over the emitter's triangles, c_t = (p1 − p0) × (p2 − p0).
+  for (size_t e = 0; e < log_area.size(); ++e) {
+    const AreaEmitter& emitter = scene.area_emitters[e];
+    if (log_area[e] == 0.0 || slot[size_t(emitter.mesh)] < 0) continue;
+    const Mesh& m = scene.meshes[size_t(emitter.mesh)];
+    std::vector<Vec3d>& g = result.vertices[size_t(slot[size_t(emitter.mesh)])];
+    const double scale = log_area[e] / (2.0 * double(emitter.total_area));
+    for (size_t t = 0; t < m.triangle_count(); ++t) {
+      const Corners c = corners(m, int(t));
+      const Vec3d e1 = c.p[1] - c.p[0], e2 = c.p[2] - c.p[0];
+      const Vec3d cr = cross(e1, e2);
+      const double len = length(cr);
+      if (!(len > 0)) continue;
+      const Vec3d gc = cr * (scale / len);
+      const Vec3d g1 = cross(e2, gc), g2 = cross(gc, e1);
+      g[c.index[1]] += g1;
+      g[c.index[2]] += g2;
+      g[c.index[0]] -= g1 + g2;
+    }
+  }
+  return result;
+}
+
+void check_interior_support(const Scene& scene) {
+  const std::string where = scene.source + ": geometry gradients (interior term): ";
+  if (!scene.media.empty()) throw InputError(where + "media are not supported yet");
+  for (const Mesh& m : scene.meshes) {
+    const Material& material = scene.materials[size_t(m.material)];
+    if (material.is_null) throw InputError(where + "null surfaces are not supported yet (shape '" + m.name + "')");
+    if (material.type != BsdfType::Diffuse)
+      throw InputError(where + "only diffuse surfaces are supported yet (shape '" + m.name + "')");
+    if (material.albedo.bitmap)
+      throw InputError(where + "bitmap textures on surfaces are not supported yet (shape '" + m.name + "')");
+    if (!m.colors.empty()) throw InputError(where + "vertex colours are not supported yet (shape '" + m.name + "')");
+  }
+  for (const AreaEmitter& e : scene.area_emitters)
+    if (e.radiance.bitmap)
+      throw InputError(where + "bitmap radiance on area emitters is not supported yet (shape '" +
+                       scene.meshes[size_t(e.mesh)].name + "')");
+}
+
+}  // namespace bl

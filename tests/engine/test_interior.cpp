@@ -1,0 +1,138 @@
+// The interior term's local derivatives (engine/integrators/interior.h) against central
+// differences of the same templates evaluated in double: the hit of a fixed ray on a moving
+// triangle (point and shading normal), and the log-factors of a path's continuation, light
+// samples and MIS weights. Whole-image checks (finite differences in expectation) are in
+// test_boundary.cpp.
+#include <catch2/catch.hpp>
+
+#include <array>
+#include <cmath>
+#include <functional>
+#include <random>
+
+#include "engine/core/dual.h"
+#include "engine/integrators/interior.h"
+
+using namespace bl;
+using namespace bl::interior_detail;
+
+namespace {
+
+// f maps an input vector to one output; compares ∂f/∂x_i (from the Dual evaluation) with central
+// differences of the double evaluation at step h, relative to the gradient's largest entry.
+template <int N>
+void check_gradient(const std::function<Dual<double, N>(const std::array<Dual<double, N>, N>&)>& f,
+                    const std::array<double, N>& x, double h, double tolerance, const char* what) {
+  std::array<Dual<double, N>, N> xd;
+  for (int i = 0; i < N; ++i) xd[size_t(i)] = Dual<double, N>::variable(x[size_t(i)], i);
+  const Dual<double, N> y = f(xd);
+  double largest = 0;
+  for (int i = 0; i < N; ++i) largest = std::max(largest, std::abs(y.d[size_t(i)]));
+  REQUIRE(largest > 0);
+  for (int i = 0; i < N; ++i) {
+    auto at = [&](double step) {
+      std::array<Dual<double, N>, N> p;
+      for (int k = 0; k < N; ++k) p[size_t(k)] = Dual<double, N>(x[size_t(k)] + (k == i ? step : 0.0));
+      return f(p).v;
+    };
+    const double fd = (at(h) - at(-h)) / (2 * h);
+    INFO(what << ": input " << i << " analytic " << y.d[size_t(i)] << " finite differences " << fd);
+    CHECK(std::abs(y.d[size_t(i)] - fd) <= tolerance * largest);
+  }
+}
+
+template <class A>
+Vec3<typename A::value_type> vec(const A& x, int first) {
+  return {x[size_t(first)], x[size_t(first + 1)], x[size_t(first + 2)]};
+}
+
+template <int N>
+std::array<double, N> random_point(std::mt19937& rng, const std::array<double, N>& centre, double spread) {
+  std::uniform_real_distribution<double> u(-spread, spread);
+  std::array<double, N> x = centre;
+  for (double& v : x) v += u(rng);
+  return x;
+}
+
+}  // namespace
+
+TEST_CASE("moving_hit: the hit point and shading normal of a fixed ray on a moving triangle", "[interior]") {
+  std::mt19937 rng(7);
+  // o, d, p0, p1, p2, n0, n1, n2: a ray from above hitting a triangle near the origin.
+  const std::array<double, 24> centre = {0.1, 2, 0.2, -0.05, -1, 0.02, -1,   0, -1,  1, 0, -1,
+                                         0,   0, 1,   0.1,   1,  0,    -0.1, 1, 0.1, 0, 1, -0.1};
+  for (int trial = 0; trial < 4; ++trial) {
+    const std::array<double, 24> x = random_point<24>(rng, centre, 0.05);
+    for (int output = 0; output < 6; ++output)
+      for (bool smooth : {true, false}) {
+        using D = Dual<double, 24>;
+        check_gradient<24>(
+            [&](const std::array<D, 24>& v) {
+              const Vec3<D> n[3] = {vec(v, 15), vec(v, 18), vec(v, 21)};
+              const MovingHit<D> h =
+                  moving_hit(vec(v, 0), vec(v, 3), vec(v, 6), vec(v, 9), vec(v, 12), smooth ? n : nullptr);
+              return output < 3 ? h.x[output] : h.m[output - 3];
+            },
+            x, 1e-6, 1e-6, smooth ? "moving_hit (smooth)" : "moving_hit (flat)");
+      }
+  }
+  // The point is on the ray and in the triangle's plane.
+  const Vec3d o(0.1, 2, 0.2), d = normalize(Vec3d(-0.05, -1, 0.02));
+  const Vec3d p0(-1, 0, -1), p1(1, 0, -1), p2(0, 0.1, 1);
+  const MovingHit<double> h = moving_hit(o, d, p0, p1, p2, static_cast<const Vec3d*>(nullptr));
+  CHECK(std::abs(dot(h.x - p0, normalize(cross(p1 - p0, p2 - p0)))) < 1e-12);
+  CHECK(length(cross(h.x - o, d)) < 1e-12);
+}
+
+TEST_CASE("log-factors of continuations, light samples and MIS weights", "[interior]") {
+  std::mt19937 rng(11);
+  const Vec3d d = normalize(Vec3d(0.3, 1, -0.2));
+  for (int trial = 0; trial < 4; ++trial)
+    for (double sign : {1.0, -1.0}) {
+      const std::array<double, 3> m = random_point<3>(rng, {0.1, sign * 1.2, 0.05}, 0.1);
+      check_gradient<3>([&](const std::array<Dual<double, 3>, 3>& v) { return log_continuation(vec(v, 0), sign, d); },
+                        m, 1e-6, 1e-6, "log_continuation");
+      check_gradient<3>(
+          [&](const std::array<Dual<double, 3>, 3>& v) { return log_environment_sample(vec(v, 0), sign, d, 0.4); }, m,
+          1e-6, 1e-6, "log_environment_sample");
+      check_gradient<3>(
+          [&](const std::array<Dual<double, 3>, 3>& v) { return log_environment_hit_weight(vec(v, 0), sign, d, 0.4); },
+          m, 1e-6, 1e-6, "log_environment_hit_weight");
+    }
+  // A point x below a light triangle, its normal m, the triangle's corners q, log of the emitter area.
+  const std::array<double, 16> light_centre = {0.1,  0,   -0.1, 0,    1, 0.1, -0.5, 1.5,
+                                               -0.4, 0.5, 1.6,  -0.5, 0, 1.4, 0.6,  std::log(0.8)};
+  for (int trial = 0; trial < 4; ++trial) {
+    const std::array<double, 16> x = random_point<16>(rng, light_centre, 0.1);
+    using D = Dual<double, 16>;
+    check_gradient<16>(
+        [&](const std::array<D, 16>& v) {
+          const Vec3<D> q[3] = {vec(v, 6), vec(v, 9), vec(v, 12)};
+          return log_light_sample(vec(v, 0), vec(v, 3), 1.0, q, 0.3, 0.25, v[15], 0.5);
+        },
+        x, 1e-6, 1e-6, "log_light_sample");
+  }
+  // The previous vertex's normal, the ray's origin, the emitter hit x and its triangle, log area.
+  const Vec3d dir = normalize(Vec3d(0.05, 1, 0.02));
+  const std::array<double, 19> hit_centre = {0,   1,    0.1, 0,   0,    0, 0.05, 1.5, 0.03,         -0.5,
+                                             1.5, -0.4, 0.5, 1.6, -0.5, 0, 1.4,  0.6, std::log(0.8)};
+  for (int trial = 0; trial < 4; ++trial) {
+    const std::array<double, 19> x = random_point<19>(rng, hit_centre, 0.05);
+    using D = Dual<double, 19>;
+    check_gradient<19>(
+        [&](const std::array<D, 19>& v) {
+          const Vec3<D> p[3] = {vec(v, 9), vec(v, 12), vec(v, 15)};
+          return log_emitter_hit_weight(vec(v, 0), 1.0, dir, vec(v, 3), vec(v, 6), p, v[18], 0.5);
+        },
+        x, 1e-6, 1e-6, "log_emitter_hit_weight");
+  }
+}
+
+TEST_CASE("the power heuristic's derivative: the two strategies' weights sum to one", "[interior]") {
+  using D = Dual<double, 2>;
+  const D a = D::variable(0.7, 0), b = D::variable(1.9, 1);
+  const D sum = power_heuristic_of(a, b) + power_heuristic_of(b, a);
+  CHECK(sum.v == Approx(1.0));
+  CHECK(std::abs(sum.d[0]) < 1e-12);
+  CHECK(std::abs(sum.d[1]) < 1e-12);
+}
