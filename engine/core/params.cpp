@@ -40,7 +40,7 @@ size_t small_param_limit() {
 }
 
 void ParamStore::require_grad(const std::vector<std::string>& names) {
-  for (auto& p : params_) p.requires_grad = names.empty();
+  for (auto& p : params_) p.requires_grad = names.empty() && !p.geometry;
   for (const auto& n : names) {
     int h = find(n);
     if (h < 0) throw InputError("unknown parameter '" + n + "' (see `backlight params`)");
@@ -56,6 +56,12 @@ void ParamStore::require_grad(const std::vector<std::string>& names) {
     flat += p.size();
   }
   zero_grad();
+}
+
+bool ParamStore::wants_geometry() const {
+  for (const auto& p : params_)
+    if (p.geometry && p.requires_grad) return true;
+  return false;
 }
 
 void ParamStore::zero_grad() {

@@ -21,6 +21,9 @@ struct Param {
   std::vector<float> grad;
   float lower = 0.f, upper = 1e30f;  // valid range, checked on load and projected by the optimizer
   bool requires_grad = false;        // set for the parameters a gradient run asks for
+  // A shape's or camera's pose or vertex positions: differentiated only when named (the default
+  // "all parameters" of a gradient run means all appearance parameters).
+  bool geometry = false;
   // Where gradients accumulate: small buffers (touched by every path) use per-thread double
   // accumulators reduced once; large ones take lock-free atomic float adds.
   bool small = false;
@@ -54,7 +57,8 @@ class ParamStore {
   std::string shape_string(int handle) const;
 
   // Gradient bookkeeping: mark which parameters want gradients, lay out per-thread accumulators.
-  void require_grad(const std::vector<std::string>& names);  // empty = all
+  void require_grad(const std::vector<std::string>& names);  // empty = all but geometry
+  bool wants_geometry() const;                               // a geometry parameter requires grad
   void zero_grad();
   size_t small_total() const { return small_total_; }
 

@@ -14,6 +14,8 @@
 
 #include "engine/core/errors.h"
 #include "engine/dist/dist.h"
+#include "engine/integrators/boundary.h"
+#include "engine/integrators/interior.h"
 #include "engine/integrators/taped.h"
 
 namespace bl {
@@ -109,8 +111,122 @@ GradientResult local_gradient(Scene& scene, const GradientRequest& rq) {
 }
 }  // namespace
 
+namespace {
+bool wants(const ParamStore& p, int handle) { return handle >= 0 && p[handle].requires_grad; }
+void add_vec(Param& p, const Vec3d& g) {
+  for (int i = 0; i < 3; ++i) p.grad[size_t(i)] += float(g[i]);
+}
+Vec3d value3(const ParamStore& p, int handle, const Vec3d& fallback) {
+  return handle >= 0 ? Vec3d(p[handle].value[0], p[handle].value[1], p[handle].value[2]) : fallback;
+}
+}  // namespace
+
+void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientRequest& rq) {
+  ParamStore& P = scene.params;
+  if (!P.wants_geometry()) return;
+  if (rq.method == GradientMethod::Taped)
+    throw InputError(scene.source + ": the taped mode does not differentiate geometry yet (use --method prb or rb)");
+  check_interior_support(scene);
+  const int camera = rq.pass.camera;
+  const CameraPose* cam_pose =
+      size_t(camera) < scene.camera_poses.size() ? &scene.camera_poses[size_t(camera)] : nullptr;
+  const bool camera_moves = cam_pose && (wants(P, cam_pose->origin) || wants(P, cam_pose->rotate));
+  std::vector<int> meshes;
+  for (size_t i = 0; i < scene.mesh_poses.size(); ++i) {
+    const MeshPose& m = scene.mesh_poses[i];
+    if (camera_moves || wants(P, m.translate) || wants(P, m.rotate) || wants(P, m.scale) || wants(P, m.positions))
+      meshes.push_back(int(i));
+  }
+  if (meshes.empty() && !camera_moves) return;
+  const int spp = rq.geometry_spp > 0 ? rq.geometry_spp : std::max(rq.pass.spp, 1);
+  const Camera& cam = scene.cameras.at(size_t(camera));
+  BoundaryOptions bo;
+  bo.camera = camera;
+  bo.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(spp);
+  bo.seed = rq.adjoint_seed;
+  bo.meshes = meshes;
+  PathGeometryOptions po;
+  po.camera = camera;
+  po.spp = spp;
+  po.seed = rq.adjoint_seed;
+  po.meshes = meshes;
+  po.camera_moves = camera_moves;
+  po.edge_samples = rq.edge_samples;
+  GeometryGradient g = meshes.empty() ? GeometryGradient{} : primary_boundary_gradient(scene, adjoint, bo);
+  GeometryGradient paths = path_geometry_gradient(scene, adjoint, po);
+  if (meshes.empty()) {
+    g = paths;
+  } else {
+    // Before the sum: the camera's share of the primary term is the meshes' relative motion.
+    if (camera_moves) {
+      const CameraPoseGradient c = camera_pose_gradient(scene, g, cam);
+      g.camera_origin = c.origin;
+      g.camera_rotate = c.rotate;
+    }
+    g += paths;
+  }
+  for (size_t k = 0; k < g.meshes.size(); ++k) {
+    const size_t i = size_t(g.meshes[k]);
+    const MeshPose& pose = scene.mesh_poses[i];
+    const Mesh& mesh = scene.meshes[i];
+    const std::vector<Vec3d>& gv = g.vertices[k];
+    const std::vector<Vec3d> none;
+    const std::vector<Vec3d>& gn = k < g.normals.size() ? g.normals[k] : none;
+    const Vec3d t = value3(P, pose.translate, Vec3d(0.0)), r = value3(P, pose.rotate, Vec3d(0.0)),
+                s = value3(P, pose.scale, Vec3d(1.0));
+    const Rotation R = rotation_of(r);
+    const Vec3d pivot(pose.pivot), centre = pivot + t;
+    Vec3d g_t(0.0), g_w(0.0), g_s(0.0);
+    const bool want_positions = wants(P, pose.positions);
+    for (size_t v = 0; v < mesh.vertex_count(); ++v) {
+      const Vec3d& d = gv[v];
+      const Vec3d local = R.apply_transpose(d);
+      g_t += d;
+      g_w += cross(Vec3d(mesh.positions[v]) - centre, d);
+      if (pose.positions >= 0) {
+        const std::vector<float>& p0 = P[pose.positions].value;
+        const Vec3d u0 = Vec3d(p0[3 * v], p0[3 * v + 1], p0[3 * v + 2]) - pivot;
+        g_s += local * u0;
+        if (want_positions)
+          for (int c = 0; c < 3; ++c) P[pose.positions].grad[3 * v + size_t(c)] += float(local[c] * s[c]);
+      }
+      if (!gn.empty() && !pose.rest_normals.empty()) {
+        const Vec3d& dn = gn[v];
+        g_w += cross(Vec3d(mesh.normals[v]), dn);
+        // n = R · normalise(n₀ ⊘ s): ∂/∂s_i = R (I − ŵŵᵀ)(−n₀_i / s_i² e_i) / |w|, w = n₀ ⊘ s.
+        const Vec3d n0(pose.rest_normals[v]);
+        const Vec3d w = n0 / s;
+        const double wl = length(w);
+        const Vec3d wh = w / wl, h = R.apply_transpose(dn);
+        const Vec3d perp = h - wh * dot(wh, h);
+        for (int c = 0; c < 3; ++c) g_s[c] -= perp[c] * n0[c] / (s[c] * s[c] * wl);
+      }
+    }
+    if (wants(P, pose.translate)) add_vec(P[pose.translate], g_t);
+    if (wants(P, pose.rotate)) add_vec(P[pose.rotate], left_jacobian_transpose(r, g_w));
+    if (wants(P, pose.scale)) add_vec(P[pose.scale], g_s);
+  }
+  if (camera_moves) {
+    if (wants(P, cam_pose->origin)) add_vec(P[cam_pose->origin], g.camera_origin);
+    if (wants(P, cam_pose->rotate))
+      add_vec(P[cam_pose->rotate], left_jacobian_transpose(value3(P, cam_pose->rotate, Vec3d(0.0)), g.camera_rotate));
+  }
+}
+
 GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
+  if (scene.params.wants_geometry()) {  // refuse before any work
+    if (rq.method == GradientMethod::Taped)
+      throw InputError(scene.source + ": the taped mode does not differentiate geometry yet (use --method prb or rb)");
+    check_interior_support(scene);
+  }
   GradientResult result = local_gradient(scene, rq);
+  if (scene.params.wants_geometry() && dist::is_root()) {
+    const Image adjoint =
+        rq.adjoint_image ? *rq.adjoint_image : compute_loss(rq.loss, result.image, *rq.target).adjoint;
+    const auto start = std::chrono::steady_clock::now();
+    add_geometry_gradient(scene, adjoint, rq);
+    result.adjoint_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  }
   if (!rq.accumulate) dist::reduce_gradients(scene.params);
   return result;
 }

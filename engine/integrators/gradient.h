@@ -24,6 +24,10 @@ struct GradientRequest {
   // Add to the grad buffers instead of zeroing them first. Under MPI the gradient is then this
   // rank's share: the caller sums it over ranks (dist::reduce_gradients) after its last pass.
   bool accumulate = false;
+  // Geometry parameters (poses, vertex positions, camera pose): camera paths per pixel of their
+  // interior and secondary-visibility terms, and primary edge samples per pixel (0 = pass.spp).
+  int geometry_spp = 0;
+  int edge_samples = 4;  // secondary-visibility edge samples per path vertex
 };
 
 struct GradientResult {
@@ -36,11 +40,17 @@ struct GradientResult {
 };
 
 // Computes the gradient into the ParamStore's grad buffers (zeroed first) for the parameters
-// marked requires_grad. When adjoint_seed == seed, the primal render and the adjoint pass are
-// fused: each pixel is rendered once, its loss gradient taken, and its paths replayed.
-// Under MPI every rank calls it; the pixels are split among them and, unless request.accumulate,
-// the gradient is summed over ranks before it returns (image and loss are whole on every rank).
+// marked requires_grad. Geometry parameters (ParamStore::wants_geometry) take the primary- and
+// secondary-visibility boundary terms and the interior term (boundary.h, interior.h) of the image
+// adjoint δI, chained into poses, vertex positions and the camera's pose (not in the taped mode). When adjoint_seed ==
+// seed, the primal render and the adjoint pass are fused: each pixel is rendered once, its loss gradient taken, and its
+// paths replayed. Under MPI every rank calls it; the pixels are split among them and, unless request.accumulate, the
+// gradient is summed over ranks before it returns (image and loss are whole on every rank).
 GradientResult compute_gradient(Scene& scene, const GradientRequest& request);
+
+// The geometry part of a gradient: adds dF/dθ for F = ⟨adjoint, I⟩ into the grad buffers of the
+// geometry parameters that require it (compute_gradient calls it on rank 0).
+void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientRequest& request);
 
 // One row of a directional-derivative check.
 struct CheckRow {

@@ -40,6 +40,12 @@ float Mesh::triangle_area(size_t t) const {
 }
 
 void Scene::prepare() {
+  update_geometry();
+  prepare_geometry();
+  prepare_sampling_only();
+}
+
+void Scene::prepare_geometry() {
   for (auto& cam : cameras) validate_camera(cam, source);
   for (auto& m : meshes) {
     m.face_normals.resize(m.triangle_count());
@@ -66,10 +72,14 @@ void Scene::prepare() {
   geometry->build(meshes);
   has_null_surfaces = false;
   for (const auto& m : meshes) has_null_surfaces |= materials[size_t(m.material)].is_null;
-  prepare_sampling();
 }
 
 void Scene::prepare_sampling() {
+  if (update_geometry()) prepare_geometry();
+  prepare_sampling_only();
+}
+
+void Scene::prepare_sampling_only() {
   environment.prepare(params);
   for (auto& m : media) m.prepare(params);
 }

@@ -37,6 +37,37 @@ struct Mesh {
   float triangle_area(size_t t) const;
 };
 
+// The geometry parameters of a mesh (handles into the parameter store, −1 = none) and its rest
+// state: positions p = pivot + t + R(r) · (s ⊙ (p₀ − pivot)) with p₀ the `positions` parameter
+// (world space, initially as loaded), t = `translate`, r = `rotate` (axis-angle, radians),
+// s = `scale`, pivot = the loaded vertices' centroid; vertex normals n = R · normalise(n₀ ⊘ s)
+// from the loaded ones (they are not recomputed when p₀ changes).
+struct MeshPose {
+  int translate = -1, rotate = -1, scale = -1, positions = -1;
+  Vec3f pivot;
+  std::vector<Vec3f> rest_normals;
+  std::vector<double> rest_areas;  // per triangle, to detect triangles a step made degenerate
+  std::vector<float> applied;      // the parameter values the mesh was last posed with
+};
+
+// A camera's pose parameters: `origin` (world position) and `rotate` (axis-angle about the
+// origin, applied to the loaded frame).
+struct CameraPose {
+  int origin = -1, rotate = -1;
+  Camera rest;
+  std::vector<float> applied;
+};
+
+// Rotation matrix rows of axis-angle r (Rodrigues), and the left Jacobian J with
+// R(r + δ) ≈ (I + [J δ]×) R(r): a world-frame rotation gradient g_ω becomes Jᵀ g_ω for r.
+struct Rotation {
+  Vec3d row[3];
+  Vec3d apply(const Vec3d& v) const { return {dot(row[0], v), dot(row[1], v), dot(row[2], v)}; }
+  Vec3d apply_transpose(const Vec3d& v) const { return row[0] * v.x + row[1] * v.y + row[2] * v.z; }
+};
+Rotation rotation_of(const Vec3d& r);
+Vec3d left_jacobian_transpose(const Vec3d& r, const Vec3d& g);
+
 struct IntegratorSettings {
   int spp = 16;
   int max_depth = 6;  // path segments, camera ray included; -1 = unlimited
@@ -66,12 +97,25 @@ struct Scene {
   std::vector<Medium> media;
   IntegratorSettings settings;
   std::unique_ptr<Geometry> geometry;
-  bool has_null_surfaces = false;  // derived by prepare()
+  bool has_null_surfaces = false;        // derived by prepare()
+  std::vector<MeshPose> mesh_poses;      // per mesh, after add_geometry_params()
+  std::vector<CameraPose> camera_poses;  // per camera
 
   // Builds derived data: BVH, emitter sampling tables, environment distribution. Call after
   // loading and whenever parameter values changed that sampling depends on.
   void prepare();
-  void prepare_sampling();  // environment distribution and medium majorants (parameter-dependent)
+  // Everything parameter-dependent: meshes and cameras re-posed from their geometry parameters
+  // when those changed (then the BVH and emitter tables are rebuilt), the environment
+  // distribution and medium majorants. Throws InputError for non-finite poses or a triangle that
+  // became degenerate.
+  void prepare_sampling();
+  // Creates <shape>.translate/rotate/scale/positions and <camera>.origin/rotate (loaders call it
+  // once; a name already taken by another parameter is left to it).
+  void add_geometry_params();
+  // Re-poses meshes and cameras whose geometry parameters changed; whether any did.
+  bool update_geometry();
+  void prepare_geometry();       // face normals, emitter tables, BVH, cameras' frames
+  void prepare_sampling_only();  // environment distribution and medium majorants
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }

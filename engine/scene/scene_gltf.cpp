@@ -861,6 +861,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
   scene->environment.is_map = false;
   float sky = scene->area_emitters.empty() ? 1.f : 0.1f;
   scene->environment.param = add_param("environment.radiance", {3}, {sky, sky, sky}, 0.f, 1e30f).param;
+  scene->add_geometry_params();
   scene->prepare();
   return scene;
 }

@@ -504,6 +504,7 @@ std::unique_ptr<Scene> build_json_scene(const json& root, const std::string& pat
   scene->source = path;
   Loader loader{path, fs::path(path).parent_path(), *scene};
   loader.load(root);
+  scene->add_geometry_params();
   scene->prepare();
   return scene;
 }

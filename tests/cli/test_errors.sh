@@ -260,6 +260,20 @@ expect_error set_image_wrong_size "img75.exr" "7x5" "wall.albedo" "[8,8,3]" -- \
 expect_error set_nan "white.albedo" "re:NaN|not a (finite )?number" -- render "$small" -o o.exr --set white.albedo=nan
 expect_error set_inf "white.albedo" "re:NaN|infinite|finite" -- render "$small" -o o.exr --set white.albedo=1e999
 expect_error set_negative "white.albedo" "negative" -- render "$small" -o o.exr --set white.albedo=-0.5,0.5,0.5
+# Geometry parameters (scenes/pose: a diffuse box on a floor under a square light).
+pose="$repo/scenes/pose/scene.json"
+pose_ones="$tmp/pose_adjoint.exr" cornell_ones="$tmp/cornell_adjoint.exr"
+"$bin" render "$pose" -o "$pose_ones" --spp 1 -q 2>/dev/null || fail "render of the pose scene failed"
+"$bin" render "$cornell" -o "$cornell_ones" --resolution 32x32 --spp 1 -q 2>/dev/null || fail "render of cornell failed"
+expect_error set_positions_count "box.positions" "got 5 values" "[24,3]" -- \
+  render "$pose" -o o.exr --set box.positions=1,2,3,4,5
+expect_error set_pose_nan "box.rotate" "re:NaN|not a (finite )?number" -- render "$pose" -o o.exr --set box.rotate=0,nan,0
+expect_error set_degenerate "box" "triangle 0" "degenerate" -- render "$pose" -o o.exr --set box.positions=0.5
+expect_error set_camera_nan "front.origin" "re:NaN|finite" -- render "$pose" -o o.exr --set front.origin=1,inf,0
+expect_error grad_geometry_taped "pose/scene.json" "taped mode does not differentiate geometry" -- \
+  grad "$pose" --adjoint-image "$pose_ones" --param box.translate --method taped --out gtaped
+expect_error grad_geometry_unsupported "cornell/scene.json" "geometry gradients" "not supported yet" "wall" -- \
+  grad "$cornell" --adjoint-image "$cornell_ones" --param metal_cube.translate --resolution 32x32 --spp 1 --out gglossy
 expect_error set_count "white.albedo" "2 values" "[3]" -- render "$small" -o o.exr --set white.albedo=0.5,0.5
 expect_error set_syntax "--set" "white.albedo" -- render "$small" -o o.exr --set white.albedo
 expect_error set_corrupt_image "random.png" "unsupported image format" -- \

@@ -1,0 +1,162 @@
+// Geometry parameters: shape poses, vertex positions and camera poses (scene.h: MeshPose,
+// CameraPose), applied to the meshes and cameras whenever their values change.
+#include <cmath>
+#include <string>
+
+#include "engine/core/errors.h"
+#include "engine/scene/scene.h"
+
+namespace bl {
+
+Rotation rotation_of(const Vec3d& r) {
+  const double theta = length(r);
+  Rotation R;
+  if (!(theta > 0)) {
+    R.row[0] = {1, 0, 0};
+    R.row[1] = {0, 1, 0};
+    R.row[2] = {0, 0, 1};
+    return R;
+  }
+  const Vec3d k = r / theta;
+  const double c = std::cos(theta), s = std::sin(theta), v = 1 - c;
+  R.row[0] = {c + k.x * k.x * v, k.x * k.y * v - k.z * s, k.x * k.z * v + k.y * s};
+  R.row[1] = {k.y * k.x * v + k.z * s, c + k.y * k.y * v, k.y * k.z * v - k.x * s};
+  R.row[2] = {k.z * k.x * v - k.y * s, k.z * k.y * v + k.x * s, c + k.z * k.z * v};
+  return R;
+}
+
+// J(r) = I + a [r]× + b [r]×², a = (1 − cos θ)/θ², b = (θ − sin θ)/θ³; Jᵀ g = g − a r×g + b r×(r×g).
+Vec3d left_jacobian_transpose(const Vec3d& r, const Vec3d& g) {
+  const double theta = length(r);
+  double a = 0.5, b = 1.0 / 6.0;
+  if (theta > 1e-4) {
+    a = (1 - std::cos(theta)) / (theta * theta);
+    b = (theta - std::sin(theta)) / (theta * theta * theta);
+  }
+  return g - cross(r, g) * a + cross(r, cross(r, g)) * b;
+}
+
+namespace {
+
+Param vector_param(const std::string& name, const Vec3f& v, float lower) {
+  Param p;
+  p.name = name;
+  p.shape = {3};
+  p.value = {v.x, v.y, v.z};
+  p.lower = lower;
+  p.upper = 1e30f;
+  p.geometry = true;
+  return p;
+}
+
+int add_if_free(ParamStore& store, Param p, const std::string& where) {
+  if (store.find(p.name) >= 0) return -1;
+  return store.add(std::move(p), where);
+}
+
+Vec3d vec_of(const Param& p) { return {p.value[0], p.value[1], p.value[2]}; }
+
+void append(std::vector<float>& out, const Param* p) {
+  if (p) out.insert(out.end(), p->value.begin(), p->value.end());
+}
+
+}  // namespace
+
+void Scene::add_geometry_params() {
+  if (!mesh_poses.empty() || !camera_poses.empty()) return;
+  mesh_poses.resize(meshes.size());
+  for (size_t i = 0; i < meshes.size(); ++i) {
+    Mesh& m = meshes[i];
+    MeshPose& pose = mesh_poses[i];
+    if (m.name.empty()) continue;  // nothing to name its parameters by
+    Vec3d c(0.0);
+    for (size_t v = 0; v < m.vertex_count(); ++v) c += Vec3d(m.positions[v]);
+    pose.pivot = m.vertex_count() ? Vec3f(c / double(m.vertex_count())) : Vec3f(0.f);
+    pose.rest_normals = m.normals;
+    pose.rest_areas.resize(m.triangle_count());
+    for (size_t t = 0; t < m.triangle_count(); ++t) pose.rest_areas[t] = double(m.triangle_area(t));
+    pose.translate = add_if_free(params, vector_param(m.name + ".translate", Vec3f(0.f), -1e30f), source);
+    pose.rotate = add_if_free(params, vector_param(m.name + ".rotate", Vec3f(0.f), -1e30f), source);
+    pose.scale = add_if_free(params, vector_param(m.name + ".scale", Vec3f(1.f), 1e-6f), source);
+    Param positions;
+    positions.name = m.name + ".positions";
+    positions.shape = {int(m.vertex_count()), 3};
+    positions.value.reserve(3 * m.vertex_count());
+    for (size_t v = 0; v < m.vertex_count(); ++v) {
+      positions.value.push_back(m.positions[v].x);
+      positions.value.push_back(m.positions[v].y);
+      positions.value.push_back(m.positions[v].z);
+    }
+    positions.lower = -1e30f;
+    positions.geometry = true;
+    pose.positions = add_if_free(params, std::move(positions), source);
+  }
+  camera_poses.resize(cameras.size());
+  for (size_t i = 0; i < cameras.size(); ++i) {
+    CameraPose& pose = camera_poses[i];
+    pose.rest = cameras[i];
+    if (cameras[i].name.empty()) continue;
+    pose.origin = add_if_free(params, vector_param(cameras[i].name + ".origin", cameras[i].origin, -1e30f), source);
+    pose.rotate = add_if_free(params, vector_param(cameras[i].name + ".rotate", Vec3f(0.f), -1e30f), source);
+  }
+  // The values as loaded are what the meshes and cameras show: nothing to apply.
+  for (size_t i = 0; i < meshes.size(); ++i) {
+    const MeshPose& pose = mesh_poses[i];
+    std::vector<float>& a = mesh_poses[i].applied;
+    for (int h : {pose.translate, pose.rotate, pose.scale, pose.positions}) append(a, h >= 0 ? &params[h] : nullptr);
+  }
+  for (CameraPose& pose : camera_poses)
+    for (int h : {pose.origin, pose.rotate}) append(pose.applied, h >= 0 ? &params[h] : nullptr);
+}
+
+bool Scene::update_geometry() {
+  bool moved = false;
+  std::vector<float> now;
+  for (size_t i = 0; i < mesh_poses.size(); ++i) {
+    MeshPose& pose = mesh_poses[i];
+    now.clear();
+    for (int h : {pose.translate, pose.rotate, pose.scale, pose.positions}) append(now, h >= 0 ? &params[h] : nullptr);
+    if (now == pose.applied) continue;
+    Mesh& m = meshes[i];
+    const std::string where = source + ": shape '" + m.name + "'";
+    for (float v : now)
+      if (!std::isfinite(v)) throw InputError(where + ": a pose or vertex position is not finite");
+    const Vec3d t = pose.translate >= 0 ? vec_of(params[pose.translate]) : Vec3d(0.0);
+    const Vec3d r = pose.rotate >= 0 ? vec_of(params[pose.rotate]) : Vec3d(0.0);
+    const Vec3d s = pose.scale >= 0 ? vec_of(params[pose.scale]) : Vec3d(1.0);
+    const Rotation R = rotation_of(r);
+    const Vec3d pivot(pose.pivot);
+    const std::vector<float>* p0 = pose.positions >= 0 ? &params[pose.positions].value : nullptr;
+    for (size_t v = 0; v < m.vertex_count(); ++v) {
+      const Vec3d rest = p0 ? Vec3d((*p0)[3 * v], (*p0)[3 * v + 1], (*p0)[3 * v + 2]) : Vec3d(m.positions[v]);
+      m.positions[v] = Vec3f(pivot + t + R.apply((rest - pivot) * s));
+      if (!pose.rest_normals.empty()) m.normals[v] = Vec3f(R.apply(normalize(Vec3d(pose.rest_normals[v]) / s)));
+    }
+    for (size_t k = 0; k < m.triangle_count(); ++k) {
+      const float area = m.triangle_area(k);
+      if (pose.rest_areas[k] > 0 && !(area > 0.f))
+        throw InputError(where + ": triangle " + std::to_string(k) + " became degenerate (zero area)");
+    }
+    pose.applied = now;
+    moved = true;
+  }
+  for (size_t i = 0; i < camera_poses.size(); ++i) {
+    CameraPose& pose = camera_poses[i];
+    now.clear();
+    for (int h : {pose.origin, pose.rotate}) append(now, h >= 0 ? &params[h] : nullptr);
+    if (now == pose.applied) continue;
+    Camera& cam = cameras[i];
+    for (float v : now)
+      if (!std::isfinite(v)) throw InputError(source + ": camera '" + cam.name + "': its pose is not finite");
+    const Vec3d origin = pose.origin >= 0 ? vec_of(params[pose.origin]) : Vec3d(pose.rest.origin);
+    const Rotation R = rotation_of(pose.rotate >= 0 ? vec_of(params[pose.rotate]) : Vec3d(0.0));
+    cam.origin = Vec3f(origin);
+    cam.target = Vec3f(origin + R.apply(Vec3d(pose.rest.target - pose.rest.origin)));
+    cam.up = Vec3f(R.apply(Vec3d(pose.rest.up)));
+    pose.applied = now;
+    moved = true;
+  }
+  return moved;
+}
+
+}  // namespace bl

@@ -1,0 +1,193 @@
+// Geometry parameters end to end: <shape>.translate/rotate/scale/positions and
+// <camera>.origin/rotate in the parameter store, their gradients from compute_gradient (boundary
+// and interior terms chained into the parameters, at poses away from identity), against central
+// differences of renders over seeds (visibility moves: |z| < 4), and the re-posing itself.
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <map>
+#include <random>
+
+#include "engine/core/errors.h"
+#include "engine/integrators/gradient.h"
+#include "engine/scene/scene_load.h"
+#include "test_scenes.h"
+
+using namespace bl;
+
+namespace {
+
+constexpr int kRes = 48;
+
+// The bundled pose scene's layout (scenes/pose/scene.json) at a small film: a diffuse box above a
+// floor (lifted by 0.1: a box pushed into the floor would make their intersection a
+// discontinuity that is no mesh edge, which edge sampling misses), a square light above, a
+// constant environment.
+nlohmann::json pose_scene() {
+  return nlohmann::json::parse(R"({
+    "integrator": {"spp": 16, "max_depth": 3, "rr_depth": 0},
+    "cameras": [{"name": "front", "origin": [2.2, 2.0, 2.6], "target": [0, 0.15, 0], "up": [0, 1, 0], "fov": 45,
+                 "resolution": [48, 48]}],
+    "environment": {"type": "constant", "radiance": [0.12, 0.12, 0.14]},
+    "materials": {"floor": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
+                  "box": {"type": "diffuse", "albedo": [0.8, 0.35, 0.2]},
+                  "black": {"type": "diffuse", "albedo": [0, 0, 0]}},
+    "shapes": [
+      {"name": "floor", "type": "rectangle", "material": "floor",
+       "transform": {"scale": 2, "rotate": {"axis": [1, 0, 0], "angle": -90}}},
+      {"name": "box", "type": "cube", "material": "box",
+       "transform": {"scale": [0.45, 0.2, 0.25], "translate": [0, 0.3, 0]}},
+      {"name": "light", "type": "rectangle", "material": "black",
+       "transform": {"scale": 0.3, "rotate": {"axis": [1, 0, 0], "angle": 90}, "translate": [0, 1.5, 0]},
+       "emitter": {"radiance": [8, 8, 8]}}]})");
+}
+
+std::unique_ptr<Scene> build(const nlohmann::json& j) {
+  return build_json_scene(j, test::temp_dir("geometry-params") + "/scene.json");
+}
+
+struct Estimate {
+  double mean = 0, stderr_ = 0;
+};
+Estimate summarize(const std::vector<double>& xs) {
+  double m = 0, v = 0;
+  for (double x : xs) m += x / double(xs.size());
+  for (double x : xs) v += (x - m) * (x - m) / double(xs.size() - 1);
+  return {m, std::sqrt(v / double(xs.size()))};
+}
+double z_score(const Estimate& a, const Estimate& b) {
+  return (a.mean - b.mean) / std::sqrt(a.stderr_ * a.stderr_ + b.stderr_ * b.stderr_);
+}
+
+// A ramp from left to right: moving content sideways (a camera's pan) changes F at every pixel,
+// not only at the film's border.
+Image ramp() {
+  Image a(kRes, kRes, 3);
+  for (int y = 0; y < kRes; ++y)
+    for (int x = 0; x < kRes; ++x)
+      for (int c = 0; c < 3; ++c) a.at(x, y, c) = 0.25f + 1.5f * float(x) / float(kRes);
+  return a;
+}
+
+double functional(const Image& img) {
+  const Image a = ramp();
+  double f = 0;
+  for (size_t i = 0; i < img.data.size(); ++i) f += double(img.data[i]) * double(a.data[i]);
+  return f;
+}
+
+void set_value(Scene& scene, int h, const std::vector<float>& v) {
+  scene.params[h].value = v;
+  scene.prepare_sampling();  // re-poses what moved
+}
+
+// ⟨∇F, dir⟩ from compute_gradient over seeds, and central differences of F at ±h along dir
+// (the same render seed on both sides) over seeds.
+void check_direction(Scene& scene, const std::string& name, const std::vector<float>& dir, double h) {
+  const int handle = scene.params.find(name);
+  REQUIRE(handle >= 0);
+  REQUIRE(scene.params[handle].geometry);
+  const std::vector<float> at = scene.params[handle].value;
+  const Image a = ramp();
+  std::vector<double> grads, fds;
+  for (int s = 0; s < 12; ++s) {
+    scene.params.require_grad({name});
+    GradientRequest rq;
+    rq.adjoint_image = &a;
+    rq.pass = {0, 8, uint64_t(10 + s), false};
+    rq.adjoint_seed = uint64_t(10 + s);
+    rq.edge_samples = 8;
+    compute_gradient(scene, rq);
+    double g = 0;
+    for (size_t i = 0; i < dir.size(); ++i) g += double(scene.params[handle].grad[i]) * double(dir[i]);
+    grads.push_back(g);
+    auto moved = [&](double step) {
+      std::vector<float> v = at;
+      for (size_t i = 0; i < v.size(); ++i) v[i] += float(step * dir[i]);
+      set_value(scene, handle, v);
+      return functional(render(scene, {0, 32, uint64_t(500 + s), false}));
+    };
+    fds.push_back((moved(h) - moved(-h)) / (2 * h));
+  }
+  set_value(scene, handle, at);
+  const Estimate g = summarize(grads), fd = summarize(fds);
+  const double z = z_score(g, fd);
+  INFO(name << ": gradient " << g.mean << " ± " << g.stderr_ << ", finite differences " << fd.mean << " ± "
+            << fd.stderr_ << ", z " << z);
+  CHECK(std::abs(z) < 4);
+  CHECK(std::abs(z_score(Estimate{0.0, 0.0}, fd)) > 4);
+  CHECK(std::abs(z_score(Estimate{-g.mean, g.stderr_}, fd)) > 4);
+}
+
+}  // namespace
+
+TEST_CASE("geometry parameters are listed, posed and validated", "[geometry]") {
+  auto scene = build(pose_scene());
+  for (const char* name :
+       {"box.translate", "box.rotate", "box.scale", "box.positions", "light.translate", "front.origin", "front.rotate"})
+    CHECK(scene->params.find(name) >= 0);
+  const int positions = scene->params.find("box.positions");
+  CHECK(scene->params[positions].shape == std::vector<int>{24, 3});
+  // "All parameters" of a gradient run are the appearance ones.
+  scene->params.require_grad({});
+  CHECK_FALSE(scene->params.wants_geometry());
+  CHECK(scene->params[scene->params.find("box.albedo")].requires_grad);
+  // Translating by t moves every vertex by t; a quarter turn about y maps x to −z about the pivot.
+  const Mesh rest = scene->meshes[1];
+  const MeshPose& pose = scene->mesh_poses[1];
+  set_value(*scene, scene->params.find("box.translate"), {0.5f, 0.f, -0.25f});
+  for (size_t v = 0; v < rest.vertex_count(); ++v)
+    CHECK(length(scene->meshes[1].positions[v] - rest.positions[v] - Vec3f(0.5f, 0.f, -0.25f)) < 1e-6f);
+  set_value(*scene, scene->params.find("box.translate"), {0.f, 0.f, 0.f});
+  set_value(*scene, scene->params.find("box.rotate"), {0.f, float(kPi / 2), 0.f});
+  for (size_t v = 0; v < rest.vertex_count(); ++v) {
+    const Vec3f r = rest.positions[v] - pose.pivot, p = scene->meshes[1].positions[v] - pose.pivot;
+    CHECK(length(p - Vec3f(r.z, r.y, -r.x)) < 1e-5f);
+  }
+  // The BVH follows: a ray at the moved box hits it.
+  const Hit hit = scene->geometry->intersect(Ray{Vec3f(0, 0.2f, 3), Vec3f(0, 0, -1)});
+  CHECK(hit.mesh == 1);
+  // A triangle a step makes degenerate is an error naming the shape and the triangle.
+  std::vector<float> flat = scene->params[positions].value;
+  for (size_t v = 0; v < flat.size(); v += 3) flat[v + 1] = 0.2f;  // every vertex at one height
+  scene->params[positions].value = flat;
+  CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("box") && Catch::Contains("degenerate"));
+  scene->params[positions].value[0] = std::nanf("");
+  CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("box") && Catch::Contains("not finite"));
+}
+
+TEST_CASE("geometry parameter gradients against finite differences, away from the identity pose", "[geometry]") {
+  auto scene = build(pose_scene());
+  auto set = [&](const std::string& name, const std::vector<float>& v) {
+    set_value(*scene, scene->params.find(name), v);
+  };
+  // Poses away from the identity: the rotation's left Jacobian and the scale's chain rule matter.
+  set("box.rotate", {0.15f, 0.6f, -0.1f});
+  set("box.scale", {1.2f, 0.9f, 1.1f});
+  set("box.translate", {0.1f, 0.02f, 0.05f});
+  set("light.translate", {0.3f, 0.f, -0.2f});
+  set("front.rotate", {0.02f, -0.05f, 0.f});
+  check_direction(*scene, "box.translate", {1.f, 0.2f, -0.5f}, 0.01);
+  check_direction(*scene, "box.rotate", {0.3f, 1.f, 0.f}, 0.04);
+  check_direction(*scene, "box.scale", {1.f, -0.5f, 0.7f}, 0.02);
+  check_direction(*scene, "light.translate", {1.f, 0.3f, 0.5f}, 0.02);
+  check_direction(*scene, "front.origin", {-0.5f, -0.45f, -0.6f}, 0.01);
+  check_direction(*scene, "front.rotate", {0.2f, 1.f, 0.1f}, 0.01);
+  // Vertex positions along a random direction per welded position (the cube's split copies
+  // move together, so the surface stays closed).
+  const int positions = scene->params.find("box.positions");
+  std::vector<float> dir(scene->params[positions].size());
+  std::map<std::tuple<float, float, float>, Vec3f> by_position;
+  std::mt19937 rng(3);
+  std::normal_distribution<float> normal;
+  const std::vector<float>& p0 = scene->params[positions].value;
+  for (size_t v = 0; v < dir.size() / 3; ++v) {
+    const auto key = std::make_tuple(p0[3 * v], p0[3 * v + 1], p0[3 * v + 2]);
+    if (!by_position.count(key)) by_position[key] = Vec3f(normal(rng), normal(rng), normal(rng));
+    const Vec3f d = by_position[key];
+    dir[3 * v] = d.x;
+    dir[3 * v + 1] = d.y;
+    dir[3 * v + 2] = d.z;
+  }
+  check_direction(*scene, "box.positions", dir, 0.005);
+}
