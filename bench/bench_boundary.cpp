@@ -1,11 +1,12 @@
-// Cost of the primary-visibility boundary term (engine/integrators/boundary.h) against the primal
-// render of the same scene and camera, in one process:
-//   bench_boundary SCENE --spp S --edge-samples N [--secondary-spp K] [--resolution WxH]
-// renders at S spp (timed), then computes the boundary term of every mesh's vertices for the
-// adjoint image of ones with N edge samples (timed twice, to show the spread; each edge sample
-// traces two paths), and the same with one sample (the cost of building the candidate-edge
-// table), then the secondary term with K camera paths per pixel (when K > 0), and prints one JSON
-// line: times, candidate edges, their projected length, triangles, peak RSS (getrusage).
+// Cost of the geometry-gradient terms against the primal render and the appearance prb pass of the
+// same scene and camera, in one process:
+//   bench_boundary SCENE --spp S --geometry-spp K [--edge-samples E] [--resolution WxH] [--no-paths]
+// renders at S spp (timed), runs the prb adjoint pass for every appearance parameter at S spp
+// (timed; the adjoint image is ones), then the primary boundary term of every mesh's vertices with
+// K edge samples per pixel (timed twice, to show the spread; each traces two paths) and with one
+// sample (the candidate-edge table alone), then on K camera paths per pixel the interior term
+// alone and the secondary term alone (E edge samples per vertex; skipped with --no-paths), and
+// prints one JSON line: times, candidate edges, triangles, peak RSS (getrusage).
 #include <sys/resource.h>
 
 #include <chrono>
@@ -15,6 +16,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/integrators/boundary.h"
+#include "engine/integrators/gradient.h"
 #include "engine/integrators/interior.h"
 #include "engine/integrators/render.h"
 #include "engine/scene/scene_load.h"
@@ -31,17 +33,28 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::fprintf(stderr, "usage: bench_boundary SCENE --spp S --edge-samples N [--resolution WxH]\n");
+    std::fprintf(stderr,
+                 "usage: bench_boundary SCENE --spp S --geometry-spp K [--edge-samples E] [--resolution WxH] "
+                 "[--no-paths]\n");
     return 2;
   }
-  int spp = 16, width = 0, height = 0, secondary_spp = 0;
-  uint64_t samples = 0;
-  for (int i = 2; i + 1 < argc; i += 2) {
+  int spp = 16, width = 0, height = 0, geometry_spp = 1, edge_samples = 4;
+  bool paths = true;
+  for (int i = 2; i < argc; ++i) {
     const std::string a = argv[i];
-    if (a == "--spp") spp = std::atoi(argv[i + 1]);
-    if (a == "--edge-samples") samples = std::strtoull(argv[i + 1], nullptr, 10);
-    if (a == "--resolution") std::sscanf(argv[i + 1], "%dx%d", &width, &height);
-    if (a == "--secondary-spp") secondary_spp = std::atoi(argv[i + 1]);
+    if (a == "--no-paths") {
+      paths = false;
+      continue;
+    }
+    if (i + 1 >= argc) break;
+    if (a == "--spp")
+      spp = std::atoi(argv[++i]);
+    else if (a == "--geometry-spp")
+      geometry_spp = std::atoi(argv[++i]);
+    else if (a == "--edge-samples")
+      edge_samples = std::atoi(argv[++i]);
+    else if (a == "--resolution")
+      std::sscanf(argv[++i], "%dx%d", &width, &height);
   }
   try {
     auto scene = load_scene(argv[1]);
@@ -59,8 +72,17 @@ int main(int argc, char** argv) {
     const double primal = seconds_since(t0);
     Image ones(cam.width, cam.height, 3);
     for (float& v : ones.data) v = 1.f;
+    // The appearance adjoint pass (prb, every appearance parameter), fused with its primal.
+    scene->params.require_grad({});
+    GradientRequest rq;
+    rq.adjoint_image = &ones;
+    rq.pass = po;
+    t0 = std::chrono::steady_clock::now();
+    compute_gradient(*scene, rq);
+    const double prb = seconds_since(t0);
+
     BoundaryOptions bo;
-    bo.samples = samples;
+    bo.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(geometry_spp);
     double times[2];
     GeometryGradient g;
     for (double& t : times) {
@@ -68,15 +90,20 @@ int main(int argc, char** argv) {
       g = primary_boundary_gradient(*scene, ones, bo);
       t = seconds_since(t0);
     }
-    // The candidate-edge table alone: the same call with one sample.
-    bo.samples = 1;
+    bo.samples = 1;  // the candidate-edge table alone
     t0 = std::chrono::steady_clock::now();
     primary_boundary_gradient(*scene, ones, bo);
     const double setup = seconds_since(t0);
-    double secondary = 0;
-    if (secondary_spp > 0) {
+    double interior = 0, secondary = 0;
+    if (paths) {
       PathGeometryOptions so;
-      so.spp = secondary_spp;
+      so.spp = geometry_spp;
+      so.edge_samples = edge_samples;
+      so.boundary = false;
+      t0 = std::chrono::steady_clock::now();
+      path_geometry_gradient(*scene, ones, so);
+      interior = seconds_since(t0);
+      so.boundary = true;
       so.interior = false;
       t0 = std::chrono::steady_clock::now();
       path_geometry_gradient(*scene, ones, so);
@@ -87,12 +114,12 @@ int main(int argc, char** argv) {
     rusage ru{};
     getrusage(RUSAGE_SELF, &ru);
     std::printf(
-        "{\"width\": %d, \"height\": %d, \"spp\": %d, \"primal_seconds\": %.4f, \"edge_samples\": %llu, "
-        "\"boundary_seconds\": [%.4f, %.4f], \"edge_table_seconds\": %.4f, \"candidate_edges\": %d, "
-        "\"projected_edge_length_px\": %.1f, \"triangles\": %zu, \"secondary_spp\": %d, \"secondary_seconds\": %.4f, "
-        "\"peak_rss_mb\": %.1f}\n",
-        cam.width, cam.height, spp, primal, (unsigned long long)g.samples, times[0], times[1], setup, g.edges,
-        g.edge_length, triangles, secondary_spp, secondary, double(ru.ru_maxrss) / 1024.0);
+        "{\"width\": %d, \"height\": %d, \"spp\": %d, \"geometry_spp\": %d, \"edge_samples_per_vertex\": %d, "
+        "\"primal_seconds\": %.4f, \"prb_seconds\": %.4f, \"boundary_seconds\": [%.4f, %.4f], "
+        "\"edge_table_seconds\": %.4f, \"candidate_edges\": %d, \"projected_edge_length_px\": %.1f, "
+        "\"triangles\": %zu, \"interior_seconds\": %.4f, \"secondary_seconds\": %.4f, \"peak_rss_mb\": %.1f}\n",
+        cam.width, cam.height, spp, geometry_spp, edge_samples, primal, prb, times[0], times[1], setup, g.edges,
+        g.edge_length, triangles, interior, secondary, double(ru.ru_maxrss) / 1024.0);
     (void)image;
   } catch (const InputError& e) {
     std::fprintf(stderr, "bench_boundary: %s\n", e.what());

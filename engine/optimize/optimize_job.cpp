@@ -15,6 +15,8 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
+#include <iterator>
 #include <map>
 #include <optional>
 
@@ -596,6 +598,18 @@ class Job {
     for (auto& cam : scene_->cameras) validate_camera(cam, c_.file);
   }
 
+  // What a reference target of view v is rendered from, as text (hashed: the scene file's bytes).
+  std::string target_key(size_t v, const Camera& cam) const {
+    std::ifstream in(c_.scene, std::ios::binary);
+    const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    std::string key = "scene " + std::to_string(std::hash<std::string>{}(bytes)) + "\n";
+    for (const auto& o : c_.scene_overrides) key += "set " + o + "\n";
+    for (const auto& o : c_.reference_overrides) key += "reference " + o + "\n";
+    key += "spp " + std::to_string(c_.reference_spp) + " seed " + std::to_string(0xabcdefull + v) + " camera " +
+           cam.name + " " + std::to_string(cam.width) + "x" + std::to_string(cam.height) + "\n";
+    return key;
+  }
+
   void prepare_targets() {
     if (root_) fs::create_directories(out("targets"));
     std::unique_ptr<Scene> reference;
@@ -612,13 +626,20 @@ class Job {
       }
       if (c_.reference_overrides.empty())
         throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
-      // Rendered from the reference variant and cached; a cache of the wrong size is re-rendered.
-      // Rank 0 decides (all ranks must take the same branch: the render is collective).
-      const std::string cached = out("targets/" + cam.name + ".exr");
+      // Rendered from the reference variant and cached with a key of what it was rendered from
+      // (the scene file's bytes, the overrides, spp, camera and film): a cache from another scene
+      // or reference, or of the wrong size, is re-rendered. Rank 0 decides (all ranks must take
+      // the same branch: the render is collective).
+      const std::string cached = out("targets/" + cam.name + ".exr"), key_file = cached + ".key";
+      const std::string key = target_key(v, cam);
       bool use_cache = false;
-      if (root_ && fs::exists(cached)) {
-        Image t = read_image(cached, false);
-        use_cache = t.width == cam.width && t.height == cam.height;
+      if (root_ && fs::exists(cached) && fs::exists(key_file)) {
+        std::ifstream in(key_file, std::ios::binary);
+        const std::string stored((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+        if (stored == key) {
+          Image t = read_image(cached, false);
+          use_cache = t.width == cam.width && t.height == cam.height;
+        }
       }
       if (dist::root_value(use_cache)) {
         targets_.push_back(read_image(cached, false));
@@ -633,7 +654,10 @@ class Job {
           for (auto& rc : reference->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
       }
       Image t = render(*reference, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
-      if (root_) write_image(cached, t);
+      if (root_) {
+        write_image(cached, t);
+        write_text_atomic(key_file, key);
+      }
       targets_.push_back(std::move(t));
     }
     // Ground truth for the parameter RMSE: the reference variant's values.

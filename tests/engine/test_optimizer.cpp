@@ -5,6 +5,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 
 #include <nlohmann/json.hpp>
 
@@ -417,4 +418,32 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": [{"origin": [0, 1, 0], "fov": 40}], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/views/cameras/0: missing required key 'target'");
+}
+
+TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
+  const std::string dir = test::temp_dir("optimizer-target-cache");
+  const std::string job = write_tiny_job(dir, 1);
+  REQUIRE(run_optimize(job, "", 1, true) == 0);
+  const std::string target = dir + "/out/targets/top.exr";
+  const std::vector<float> first = read_all(target);
+  const auto written = std::filesystem::last_write_time(target);
+  // The same job: the cache is used (not rewritten).
+  REQUIRE(run_optimize(job, "", 1, true) == 0);
+  CHECK(std::filesystem::last_write_time(target) == written);
+  // A brighter sky in the scene file: the target follows (it was once reused from the old scene).
+  std::string scene;
+  {
+    std::ifstream in(dir + "/scene.json");
+    scene.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  const std::string old_sky = R"("radiance": [1, 1, 1])";
+  REQUIRE(scene.find(old_sky) != std::string::npos);
+  scene.replace(scene.find(old_sky), old_sky.size(), R"("radiance": [2, 2, 2])");
+  std::ofstream(dir + "/scene.json") << scene;
+  REQUIRE(run_optimize(job, "", 1, true) == 0);
+  const std::vector<float> second = read_all(target);
+  REQUIRE(second.size() == first.size());
+  double ratio = 0;
+  for (size_t i = 0; i < first.size(); ++i) ratio += double(second[i]) / std::max(double(first[i]), 1e-6);
+  CHECK(ratio / double(first.size()) == Approx(2.0).epsilon(0.05));
 }
