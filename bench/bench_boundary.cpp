@@ -1,11 +1,13 @@
 // Cost of the geometry-gradient terms against the primal render and the appearance prb pass of the
 // same scene and camera, in one process:
 //   bench_boundary SCENE --spp S --geometry-spp K [--edge-samples E] [--resolution WxH] [--no-paths]
+//                  [--scan]
 // renders at S spp (timed), runs the prb adjoint pass for every appearance parameter at S spp
 // (timed; the adjoint image is ones), then the primary boundary term of every mesh's vertices with
 // K edge samples per pixel (timed twice, to show the spread; each traces two paths) and with one
 // sample (the candidate-edge table alone), then on K camera paths per pixel the interior term
-// alone and the secondary term alone (E edge samples per vertex; skipped with --no-paths), and
+// alone and the secondary term alone (E edge samples per vertex, through the edge hierarchy or,
+// with --scan, a scan of every edge per vertex; skipped with --no-paths), and
 // prints one JSON line: times, candidate edges, triangles, peak RSS (getrusage).
 #include <sys/resource.h>
 
@@ -39,11 +41,15 @@ int main(int argc, char** argv) {
     return 2;
   }
   int spp = 16, width = 0, height = 0, geometry_spp = 1, edge_samples = 4;
-  bool paths = true;
+  bool paths = true, scan = false;
   for (int i = 2; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--no-paths") {
       paths = false;
+      continue;
+    }
+    if (a == "--scan") {  // the secondary term without the edge hierarchy
+      scan = true;
       continue;
     }
     if (i + 1 >= argc) break;
@@ -99,6 +105,7 @@ int main(int argc, char** argv) {
       PathGeometryOptions so;
       so.spp = geometry_spp;
       so.edge_samples = edge_samples;
+      so.edge_hierarchy = !scan;
       so.boundary = false;
       t0 = std::chrono::steady_clock::now();
       path_geometry_gradient(*scene, ones, so);

@@ -132,3 +132,149 @@ void add_to_edge(const EdgeTable& table, const MeshEdge& e, const Vec3d& ga, con
 }
 
 }  // namespace bl::edges
+
+namespace bl::edges {
+
+namespace {
+
+struct Build {
+  const Scene& scene;
+  const EdgeTable& table;
+  EdgeTree& tree;
+  std::vector<Vec3f> mid;
+
+  // Normal cone of the faces of edges [first, first + count) of tree.order.
+  void cone(EdgeTree::Node& n) const {
+    Vec3d sum(0.0);
+    auto faces = [&](auto&& f) {
+      for (uint32_t k = n.first; k < n.first + n.count; ++k) {
+        const MeshEdge& e = table.edges[tree.order[k]];
+        const Mesh& m = scene.meshes[size_t(e.mesh)];
+        if (e.faces != 2) continue;
+        f(m.face_normals[e.f0]);
+        f(m.face_normals[e.f1]);
+      }
+    };
+    faces([&](const Vec3f& v) { sum += Vec3d(v); });
+    const double len = length(sum);
+    if (!(len > 1e-6)) return;  // no bound
+    n.axis = Vec3f(sum / len);
+    float c = 1.f;
+    faces([&](const Vec3f& v) { c = std::min(c, dot(v, n.axis)); });
+    n.cos_angle = c;
+  }
+
+  int node(uint32_t first, uint32_t count) {
+    const int index = int(tree.nodes.size());
+    tree.nodes.emplace_back();
+    EdgeTree::Node n;
+    n.first = first;
+    n.count = count;
+    n.lo = Vec3f(1e30f);
+    n.hi = Vec3f(-1e30f);
+    for (uint32_t k = first; k < first + count; ++k) {
+      const MeshEdge& e = table.edges[tree.order[k]];
+      for (const Vec3f& p : {e.p0, e.p1}) {
+        n.lo = Vec3f(std::min(n.lo.x, p.x), std::min(n.lo.y, p.y), std::min(n.lo.z, p.z));
+        n.hi = Vec3f(std::max(n.hi.x, p.x), std::max(n.hi.y, p.y), std::max(n.hi.z, p.z));
+      }
+      n.length += length(e.p1 - e.p0);
+      n.always = n.always || e.always;
+    }
+    if (!n.always) cone(n);
+    if (count > 4) {
+      const Vec3f ext = n.hi - n.lo;
+      const int axis = ext.x > ext.y ? (ext.x > ext.z ? 0 : 2) : (ext.y > ext.z ? 1 : 2);
+      auto begin = tree.order.begin() + first, end = begin + count, middle = begin + count / 2;
+      std::nth_element(begin, middle, end, [&](uint32_t a, uint32_t b) { return mid[a][axis] < mid[b][axis]; });
+      n.left = node(first, count / 2);
+      n.right = node(first + count / 2, count - count / 2);
+    }
+    tree.nodes[size_t(index)] = n;
+    return index;
+  }
+};
+
+// Whether every face of the node has x on the same side (then no edge in it is a silhouette).
+bool one_sided_from(const EdgeTree::Node& n, const Vec3f& x) {
+  if (n.always || n.cos_angle < 0.f) return false;
+  const Vec3f c = (n.lo + n.hi) * 0.5f;
+  const float r = 0.5f * length(n.hi - n.lo);
+  const Vec3f to = x - c;
+  const float d = length(to);
+  if (!(d > r * 1.0001f)) return false;
+  const double phi = std::asin(double(r / d));  // directions from the box towards x
+  const double theta = std::acos(double(std::clamp(n.cos_angle, -1.f, 1.f)));
+  const double beta = std::acos(double(std::clamp(dot(n.axis, to / d), -1.f, 1.f)));
+  const double half_pi = 1.5707963267948966;
+  return beta + theta + phi < half_pi || beta - theta - phi > half_pi;
+}
+
+double weight(const EdgeTree::Node& n, const Vec3f& x) {
+  if (one_sided_from(n, x)) return 0.0;
+  const Vec3f c = (n.lo + n.hi) * 0.5f;
+  const Vec3f to = c - x;
+  const double r2 = 0.25 * double(dot(n.hi - n.lo, n.hi - n.lo));
+  return double(n.length) / (double(dot(to, to)) + r2 + 1e-12);
+}
+
+}  // namespace
+
+EdgeTree build_edge_tree(const Scene& scene, const EdgeTable& table) {
+  EdgeTree tree;
+  if (table.edges.empty()) return tree;
+  Build b{scene, table, tree, {}};
+  b.mid.resize(table.edges.size());
+  tree.order.resize(table.edges.size());
+  for (uint32_t i = 0; i < uint32_t(table.edges.size()); ++i) {
+    tree.order[i] = i;
+    b.mid[i] = (table.edges[i].p0 + table.edges[i].p1) * 0.5f;
+  }
+  tree.nodes.reserve(2 * table.edges.size() / 4 + 1);
+  b.node(0, uint32_t(table.edges.size()));
+  return tree;
+}
+
+bool sample_edge(const EdgeTable& table, const EdgeTree& tree, const Vec3f& x, double u, uint32_t* edge,
+                 double* probability) {
+  if (tree.nodes.empty()) return false;
+  double p = 1.0;
+  int at = 0;
+  if (one_sided_from(tree.nodes[0], x)) return false;
+  while (tree.nodes[size_t(at)].left >= 0) {
+    const EdgeTree::Node& n = tree.nodes[size_t(at)];
+    const double wl = weight(tree.nodes[size_t(n.left)], x), wr = weight(tree.nodes[size_t(n.right)], x);
+    if (!(wl + wr > 0)) return false;
+    const double pl = wl / (wl + wr);
+    if (u < pl) {
+      p *= pl;
+      u = std::min(u / pl, 1.0 - 1e-12);
+      at = n.left;
+    } else {
+      p *= 1 - pl;
+      u = std::min((u - pl) / (1 - pl), 1.0 - 1e-12);
+      at = n.right;
+    }
+  }
+  const EdgeTree::Node& leaf = tree.nodes[size_t(at)];
+  double total = 0;
+  for (uint32_t k = leaf.first; k < leaf.first + leaf.count; ++k) {
+    const MeshEdge& e = table.edges[tree.order[k]];
+    total += double(length(e.p1 - e.p0));
+  }
+  if (!(total > 0)) return false;
+  double run = 0;
+  for (uint32_t k = leaf.first; k < leaf.first + leaf.count; ++k) {
+    const MeshEdge& e = table.edges[tree.order[k]];
+    const double len = double(length(e.p1 - e.p0));
+    run += len;
+    if (u * total < run || k + 1 == leaf.first + leaf.count) {
+      *edge = tree.order[k];
+      *probability = p * len / total;
+      return len > 0;
+    }
+  }
+  return false;
+}
+
+}  // namespace bl::edges

@@ -37,3 +37,34 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
 void add_to_edge(const EdgeTable& table, const MeshEdge& e, const Vec3d& ga, const Vec3d& gb, std::vector<Vec3d>& g);
 
 }  // namespace bl::edges
+
+namespace bl::edges {
+
+// A bounding hierarchy over a table's edges for sampling, from a point x, an edge that can be a
+// discontinuity seen from x, in O(log edges) instead of a scan. Each node bounds its edges' end
+// points (a box) and their faces' normals (a cone); a node whose faces all face x, or all face
+// away from it, holds no silhouette from x and is skipped unless it holds edges that are
+// candidates from everywhere (boundary, non-manifold, crease). Children are chosen in proportion
+// to edge length over squared distance (near, long edges first); within a leaf, by length.
+struct EdgeTree {
+  struct Node {
+    Vec3f lo, hi;
+    Vec3f axis{0.f, 0.f, 1.f};      // normal cone of the faces
+    float cos_angle = -1.f;         // cosine of its half-angle; -1: no bound
+    float length = 0.f;             // total edge length
+    bool always = false;            // holds an edge that is a candidate from everywhere
+    int left = -1, right = -1;      // children; leaf when left < 0
+    uint32_t first = 0, count = 0;  // leaf: edges order[first, first + count)
+  };
+  std::vector<Node> nodes;
+  std::vector<uint32_t> order;  // edge indices grouped by leaf
+};
+EdgeTree build_edge_tree(const Scene& scene, const EdgeTable& table);
+
+// Samples an edge of `table` from x with u in [0, 1): its index and its probability. False when
+// no node can hold a discontinuity seen from x. The edge may still not be a candidate from x
+// (check with candidate_from; its contribution is then zero).
+bool sample_edge(const EdgeTable& table, const EdgeTree& tree, const Vec3f& x, double u, uint32_t* edge,
+                 double* probability);
+
+}  // namespace bl::edges

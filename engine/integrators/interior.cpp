@@ -265,6 +265,9 @@ struct EdgeSampling {
   bool emitter_moves = false;
   uint64_t seed = 0;
   int samples = 1;  // edge samples per vertex
+  bool hierarchy = true;
+  const edges::EdgeTree* moving_tree = nullptr;
+  const edges::EdgeTree* all_tree = nullptr;
 };
 
 // One point at parameter t on edge e, sampled with density 1/inv_pdf per unit length.
@@ -348,7 +351,24 @@ void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<do
                  Accumulator& acc, Vec3d& adj_x) {
   constexpr uint64_t kEdgeSeed = 0x5ec0ed6e6ull;
   const Scene& scene = *es.scene;
-  const edges::EdgeTable& table = (x_moves || es.emitter_moves) ? *es.all : *es.moving;
+  const bool everything = x_moves || es.emitter_moves;
+  const edges::EdgeTable& table = everything ? *es.all : *es.moving;
+  const PathSampler edge_rng(es.seed ^ kEdgeSeed, pixel, stream);
+  if (es.hierarchy) {
+    const edges::EdgeTree& tree = everything ? *es.all_tree : *es.moving_tree;
+    for (int j = 0; j < es.samples; ++j) {
+      uint32_t pick = 0;
+      double probability = 0;
+      if (!edges::sample_edge(table, tree, v.p, double(edge_rng.get(2 * j)), &pick, &probability)) continue;
+      const edges::MeshEdge& e = table.edges[pick];
+      if (!edges::candidate_from(scene, e, v.p)) continue;  // no discontinuity seen from x
+      const double len = double(length(e.p1 - e.p0));
+      one_edge_sample(es, v, h, a, table, e, double(edge_rng.get(2 * j + 1)), len / probability / es.samples, pixel,
+                      stream ^ (uint64_t(j) << 40), vertex, acc, adj_x);
+    }
+    return;
+  }
+  // Linear scan (for tests and benchmarks): uniform in length over the candidates from x.
   cdf.clear();
   index.clear();
   double total = 0;
@@ -359,7 +379,6 @@ void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<do
       index.push_back(i);
     }
   if (!(total > 0)) return;
-  const PathSampler edge_rng(es.seed ^ kEdgeSeed, pixel, stream);
   for (int j = 0; j < es.samples; ++j) {
     const double u = double(edge_rng.get(2 * j)) * total;
     const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
@@ -408,12 +427,15 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
   const double inv_spp = 1.0 / double(options.spp);
   const int max_depth = scene.settings.max_depth;
   edges::EdgeTable moving_edges, all_edges;
+  edges::EdgeTree moving_tree, all_tree;
   EdgeSampling es;
   if (options.boundary) {
     moving_edges = edges::edge_topology(scene, result.meshes);
     std::vector<int> every(scene.meshes.size());
     for (size_t i = 0; i < every.size(); ++i) every[i] = int(i);
     all_edges = edges::edge_topology(scene, every);
+    moving_tree = edges::build_edge_tree(scene, moving_edges);
+    all_tree = edges::build_edge_tree(scene, all_edges);
     for (int mi : result.meshes) es.emitter_moves = es.emitter_moves || scene.meshes[size_t(mi)].emitter >= 0;
     result.edges = int(all_edges.edges.size());
   }
@@ -424,6 +446,9 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
   es.side_angle = double(options.side_angle);
   es.seed = options.seed;
   es.samples = std::max(options.edge_samples, 1);
+  es.hierarchy = options.edge_hierarchy;
+  es.moving_tree = &moving_tree;
+  es.all_tree = &all_tree;
   tbb::parallel_for(tbb::blocked_range<int>(0, cam.height), [&](const tbb::blocked_range<int>& rows) {
     Accumulator& acc = per_thread.local();
     std::vector<PathVertex> path;

@@ -36,12 +36,13 @@ struct PathGeometryOptions {
   int camera = 0;
   int spp = 4;  // camera paths per pixel
   uint64_t seed = 0;
-  std::vector<int> meshes;    // meshes whose vertices get gradients (empty: all)
-  bool interior = true;       // the interior term
-  bool boundary = true;       // the secondary-visibility boundary term (one edge sample per vertex)
-  bool camera_moves = false;  // the camera's pose is differentiated: every edge moves relative to x
-  float side_angle = 1e-5f;   // radians, the offset of the boundary term's side paths
-  int edge_samples = 1;       // edge samples per vertex (each costs a shadow ray, and two paths if visible)
+  std::vector<int> meshes;     // meshes whose vertices get gradients (empty: all)
+  bool interior = true;        // the interior term
+  bool boundary = true;        // the secondary-visibility boundary term (one edge sample per vertex)
+  bool camera_moves = false;   // the camera's pose is differentiated: every edge moves relative to x
+  float side_angle = 1e-5f;    // radians, the offset of the boundary term's side paths
+  int edge_samples = 1;        // edge samples per vertex (each costs a shadow ray, and two paths if visible)
+  bool edge_hierarchy = true;  // sample edges through edges::EdgeTree (false: a scan of every edge per vertex)
 };
 
 // Interior and secondary-visibility terms of dF/d(vertex positions, vertex normals, camera origin
@@ -50,11 +51,12 @@ struct PathGeometryOptions {
 // whole derivative. The camera fields are direct derivatives (the camera's rays move with it, the
 // environment stays); they are complete only with camera_moves.
 //
-// Secondary visibility: at each surface vertex x below the maximum depth, one point p on the
-// edges that are discontinuities seen from x (uniform in 3D edge length over the edges of the
-// meshes that get gradients, or over every mesh's once x itself moves or an emitter does: a
-// linear scan per vertex, no hierarchy yet), ω = (p − x)/r, and one path on each side of the
-// plane through x and the edge. The BSDF-sampled share of the incident radiance jumps across ω
+// Secondary visibility: at each surface vertex x below the maximum depth, `edge_samples` points p
+// on the edges that are discontinuities seen from x (edges of the meshes that get gradients, or of
+// every mesh once x itself moves or an emitter does), chosen through a hierarchy over the edges
+// (edges.h: subtrees whose faces all face x, or all face away, are skipped; near, long edges are
+// preferred) and uniformly along the edge, ω = (p − x)/r, and one path on each side of the plane
+// through x and the edge. The BSDF-sampled share of the incident radiance jumps across ω
 // with directions fixed: flux [h⁻ − h⁺] n·(ṗ − ẋ)/r; the light-sampled share of an area emitter
 // a side sees directly moves with the emitter: flux ±h_N (n·(ṗ − ẋ)/r − n·(ẏ − ẋ)/r_y); h = β f L
 // over the arc length per unit edge length |ê × ω|/r and the edge pdf. ẋ is pulled back along the
