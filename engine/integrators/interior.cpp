@@ -138,6 +138,18 @@ Corners corners(const Mesh& mesh, int triangle) {
   return c;
 }
 
+// g · the derivative of a log-factor `l` with respect to the corners of an emitter's triangle
+// (inputs first .. first + 8) and the log of the emitter's area (the last input), when the
+// emitter's mesh gets gradients.
+template <int N>
+void add_to_emitter(Accumulator& acc, const std::vector<int>& slot, int mesh, int emitter, const Corners& c,
+                    const Dual<double, N>& l, int first, double g) {
+  if (slot[size_t(mesh)] < 0) return;
+  std::vector<Vec3d>& gv = acc.vertices[size_t(slot[size_t(mesh)])];
+  for (int i = 0; i < 3; ++i) gv[c.index[i]] += tangent(l, first + 3 * i) * g;
+  acc.log_area[size_t(emitter)] += l.d[size_t(N - 1)] * g;
+}
+
 // Pulls one path's derivatives back from its last vertex to the camera.
 void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
                    const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
@@ -189,11 +201,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
                                      D::variable(std::log(double(e.total_area)), 15), select);
         adj_x += tangent(l, 0) * g;
         adj_m += tangent(l, 3) * g;
-        if (slot[size_t(e.mesh)] >= 0) {
-          std::vector<Vec3d>& gv = acc.vertices[size_t(slot[size_t(e.mesh)])];
-          for (int i = 0; i < 3; ++i) gv[q.index[i]] += tangent(l, 6 + 3 * i) * g;
-          acc.log_area[size_t(v.light_emitter)] += l.d[15] * g;
-        }
+        add_to_emitter(acc, slot, e.mesh, v.light_emitter, q, l, 6, g);
       }
     }
     if (interior && v.emitter_hit && k > 0) {
@@ -208,11 +216,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
         carry_m_prev += tangent(l, 0) * g;
         adj_origin += tangent(l, 3) * g;
         adj_x += tangent(l, 6) * g;
-        if (slot[size_t(v.mesh)] >= 0) {
-          std::vector<Vec3d>& gv = acc.vertices[size_t(slot[size_t(v.mesh)])];
-          for (int i = 0; i < 3; ++i) gv[c.index[i]] += tangent(l, 9 + 3 * i) * g;
-          acc.log_area[size_t(mesh.emitter)] += l.d[18] * g;
-        }
+        add_to_emitter(acc, slot, v.mesh, mesh.emitter, c, l, 9, g);
       }
     }
 

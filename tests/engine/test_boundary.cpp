@@ -611,9 +611,10 @@ TEST_CASE("the boundary terms refuse what they do not handle, in one line", "[bo
 namespace {
 
 // A Cornell box open towards the camera: white floor, ceiling and back wall, red and green side
-// walls, a small light under the ceiling; a diffuse cube (flat shading, split vertices) and a
-// smooth-shaded sphere on the floor. Everything scatters: interreflections, shadows, and the
-// light seen directly.
+// walls, a light under the ceiling; a diffuse cube (flat shading, split vertices) and a
+// flat-shaded sphere of 24 segments, both a little above the floor (a shape pushed into another
+// makes their intersection a discontinuity that is no mesh edge). Everything scatters:
+// interreflections, shadows, and the light seen directly.
 nlohmann::json cornell_scene(int max_depth) {
   nlohmann::json j = base_scene(max_depth);
   j["cameras"][0]["origin"] = {0, 0, 3.4};
