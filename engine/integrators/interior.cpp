@@ -153,9 +153,15 @@ void add_to_emitter(Accumulator& acc, const std::vector<int>& slot, int mesh, in
 // Pulls one path's derivatives back from its last vertex to the camera.
 void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
                    const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
-                   const std::vector<int>& slot, bool interior, Accumulator& acc) {
+                   const std::vector<int>& slot, bool interior, bool camera_moves, Accumulator& acc) {
   const double select = double(scene.emitter_select_probability());
   const int n = int(path.size());
+  // Vertices before the first one on a moving mesh stay where they are (their rays come from the
+  // still camera through still surfaces): their own factors have no derivative, only a light
+  // sample on a moving emitter does.
+  int first_moving = camera_moves ? 0 : n;
+  for (int k = 0; k < first_moving; ++k)
+    if (slot[size_t(path[size_t(k)].mesh)] >= 0) first_moving = k;
   Vec3d carry_x(0.0);       // d/d(origin of the ray that hit vertex k), handed to vertex k − 1
   Vec3d carry_m_prev(0.0);  // d/d(shading normal of vertex k − 1) from vertex k's MIS weight
   for (int k = n - 1; k >= 0; --k) {
@@ -167,14 +173,15 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
     carry_x = Vec3d(0.0);
     carry_m_prev = Vec3d(0.0);
 
-    if (interior && v.scattered) {
+    const bool moves = k >= first_moving;
+    if (interior && moves && v.scattered) {
       const double g = inner(a, radiance - v.radiance_so_far);
       if (g != 0.0) {
         const auto l = log_continuation(variable<3>(h.m, 0), v.sign, v.next_direction);
         adj_m += tangent(l, 0) * g;
       }
     }
-    if (interior && v.escape) {
+    if (interior && moves && v.escape) {
       const double g = inner(a, v.escape_contribution);
       if (g != 0.0) {
         const double p_light = select * double(scene.environment.pdf(Vec3f(v.next_direction)));
@@ -182,14 +189,15 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
         adj_m += tangent(l, 0) * g;
       }
     }
-    if (interior && v.light == 2) {
+    if (interior && moves && v.light == 2) {
       const double g = inner(a, v.light_contribution);
       if (g != 0.0) {
         const double p_light = select * double(scene.environment.pdf(Vec3f(v.light_direction)));
         const auto l = log_environment_sample(variable<3>(h.m, 0), v.sign, v.light_direction, p_light);
         adj_m += tangent(l, 0) * g;
       }
-    } else if (interior && v.light == 1) {
+    } else if (interior && v.light == 1 &&
+               (moves || slot[size_t(scene.area_emitters[size_t(v.light_emitter)].mesh)] >= 0)) {
       const double g = inner(a, v.light_contribution);
       if (g != 0.0) {
         using D = Dual<double, 16>;
@@ -204,7 +212,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
         add_to_emitter(acc, slot, e.mesh, v.light_emitter, q, l, 6, g);
       }
     }
-    if (interior && v.emitter_hit && k > 0) {
+    if (interior && moves && v.emitter_hit && k > 0) {
       const double g = inner(a, v.emitter_hit_contribution);
       if (g != 0.0) {
         using D = Dual<double, 19>;
@@ -221,8 +229,8 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
     }
 
     // The hit itself: x and m as functions of the ray's origin and direction, the triangle's
-    // corners and vertex normals.
-    if (adj_x.x == 0 && adj_x.y == 0 && adj_x.z == 0 && adj_m.x == 0 && adj_m.y == 0 && adj_m.z == 0) {
+    // corners and vertex normals (nothing to pull back where none of them moves).
+    if (!moves || (adj_x.x == 0 && adj_x.y == 0 && adj_x.z == 0 && adj_m.x == 0 && adj_m.y == 0 && adj_m.z == 0)) {
       carry_x = adj_origin;
       continue;
     }
@@ -493,7 +501,7 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
               edge_sample(es, v, hits[k], x_moves, a, pixel, uint64_t(s) << 8 | uint64_t(std::min(vertex, 255)), vertex,
                           cdf, index, acc, boundary_x[k]);
           }
-          backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, acc);
+          backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, options.camera_moves, acc);
         }
       }
   });
