@@ -234,40 +234,31 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
       carry_x = adj_origin;
       continue;
     }
-    using D = Dual<double, 24>;
-    const Vec3<D> pd[3] = {variable<24>(c.p[0], 6), variable<24>(c.p[1], 9), variable<24>(c.p[2], 12)};
-    const Vec3<D> nd[3] = {variable<24>(c.n[0], 15), variable<24>(c.n[1], 18), variable<24>(c.n[2], 21)};
-    const MovingHit<D> hd = moving_hit(variable<24>(v.origin, 0), variable<24>(v.direction, 3), pd[0], pd[1], pd[2],
-                                       c.smooth ? nd : nullptr);
-    std::array<double, 24> adj{};
-    for (int i = 0; i < 24; ++i)
-      adj[size_t(i)] = adj_x.x * hd.x.x.d[size_t(i)] + adj_x.y * hd.x.y.d[size_t(i)] + adj_x.z * hd.x.z.d[size_t(i)] +
-                       adj_m.x * hd.m.x.d[size_t(i)] + adj_m.y * hd.m.y.d[size_t(i)] + adj_m.z * hd.m.z.d[size_t(i)];
-    auto at = [&](int first) { return Vec3d(adj[size_t(first)], adj[size_t(first + 1)], adj[size_t(first + 2)]); };
-    adj_origin += at(0);
+    const HitAdjoint r = moving_hit_adjoint(v.origin, v.direction, c.p, c.smooth ? c.n : nullptr, adj_x, adj_m);
+    adj_origin += r.origin;
     if (k == 0) {
       acc.camera_origin += adj_origin;
-      acc.camera_rotate += cross(v.direction, at(3));  // d turns by ω × d
+      acc.camera_rotate += cross(v.direction, r.direction);  // d turns by ω × d
     } else {
       carry_x = adj_origin;  // the origin is x_{k−1} offset along its normal by a constant
     }
     if (slot[size_t(v.mesh)] >= 0) {
       const size_t s = size_t(slot[size_t(v.mesh)]);
       for (int i = 0; i < 3; ++i) {
-        acc.vertices[s][c.index[i]] += at(6 + 3 * i);
-        if (c.smooth) acc.normals[s][c.index[i]] += at(15 + 3 * i);
+        acc.vertices[s][c.index[i]] += r.p[i];
+        if (c.smooth) acc.normals[s][c.index[i]] += r.n[i];
       }
     }
   }
 }
 
-// Secondary visibility at path vertex k (x = its point): one point p on the candidate edges seen
-// from x, uniform in 3D length, ω = (p − x)/r, n the unit normal of the plane through x and the
-// edge, and one path on each side (±side_angle along n) from x. With the parameterization of the
-// interior term, the integrand of the BSDF-sampled estimate jumps across ω and its directions are
-// fixed, so its flux is [h⁻ − h⁺] · n·(ṗ − ẋ)/r; a light sample moves with its emitter instead, so
-// where a side sees an area emitter directly its light-sampled share h_N (MIS weight w_light)
-// crosses the edge at the relative angular velocity n·(ṗ − ẋ)/r − n·(ẏ − ẋ)/r_y. h is β f L.
+// Secondary visibility at path vertex k (x = its point): one point p on an edge that is a
+// discontinuity seen from x (edge_sample below picks the edge), ω = (p − x)/r, n the unit normal of
+// the plane through x and the edge, and one path on each side (±side_angle along n) from x. With the parameterization
+// of the interior term, the integrand of the BSDF-sampled estimate jumps across ω and its directions are fixed, so its
+// flux is [h⁻ − h⁺] · n·(ṗ − ẋ)/r; a light sample moves with its emitter instead, so where a side sees an area emitter
+// directly its light-sampled share h_N (MIS weight w_light) crosses the edge at the relative angular velocity n·(ṗ −
+// ẋ)/r − n·(ẏ − ẋ)/r_y. h is β f L.
 struct EdgeSampling {
   const Scene* scene = nullptr;
   const edges::EdgeTable* moving = nullptr;  // edges of the meshes that get gradients

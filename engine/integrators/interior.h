@@ -93,6 +93,48 @@ MovingHit<S> moving_hit(const Vec3<S>& o, const Vec3<S>& d, const Vec3<S>& p0, c
 
 inline constexpr double kInvPiD = 0.31830988618379067;
 
+// Reverse-mode derivative of moving_hit: given ∂F/∂x and ∂F/∂m, ∂F with respect to the ray's
+// origin and direction, the corners and the vertex normals (`n` as in moving_hit; `grad_n` is left
+// untouched without it). With n = e1 × e2, t = n·(p0 − o)/(n·d), x − p0 = b1 e1 + b2 e2 and the dual
+// basis g1 = e2 × n / |n|², g2 = n × e1 / |n|²: γ = β1 g1 + β2 g2 (β the barycentrics' adjoints),
+// A = ∂F/∂x + γ, s = A·d / n·d; ∂o = A − s n, ∂d = t ∂o, ∂n = −s (x − p0), and the corners
+// through e1, e2 and p0. Checked against the dual-number evaluation of moving_hit.
+struct HitAdjoint {
+  Vec3d origin, direction, p[3], n[3];
+};
+inline HitAdjoint moving_hit_adjoint(const Vec3d& o, const Vec3d& d, const Vec3d* p, const Vec3d* n, const Vec3d& gx,
+                                     const Vec3d& gm) {
+  const Vec3d e1 = p[1] - p[0], e2 = p[2] - p[0];
+  const Vec3d normal = cross(e1, e2);
+  const double nn = dot(normal, normal), nd = dot(normal, d);
+  const double t = dot(normal, p[0] - o) / nd;
+  const Vec3d x = o + d * t;
+  const Vec3d g1 = cross(e2, normal) / nn, g2 = cross(normal, e1) / nn;
+  const double b1 = dot(g1, x - p[0]), b2 = dot(g2, x - p[0]);
+  HitAdjoint r;
+  Vec3d gn(0.0);  // ∂F/∂(e1 × e2)
+  Vec3d gamma(0.0);
+  if (n) {
+    const double beta1 = dot(gm, n[1] - n[0]), beta2 = dot(gm, n[2] - n[0]);
+    gamma = g1 * beta1 + g2 * beta2;
+    r.n[0] = gm * (1.0 - b1 - b2);
+    r.n[1] = gm * b1;
+    r.n[2] = gm * b2;
+  } else {
+    gn = gm;  // flat: m = e1 × e2
+  }
+  const Vec3d A = gx + gamma;
+  const double s = dot(A, d) / nd;
+  r.origin = A - normal * s;
+  r.direction = r.origin * t;
+  gn += (x - p[0]) * (-s);
+  const Vec3d ge1 = gamma * (-b1) + cross(e2, gn), ge2 = gamma * (-b2) + cross(gn, e1);
+  r.p[1] = ge1;
+  r.p[2] = ge2;
+  r.p[0] = normal * s - gamma - ge1 - ge2;
+  return r;
+}
+
 template <class S>
 S power_heuristic_of(const S& a, const S& b) {
   return a * a / (a * a + b * b);

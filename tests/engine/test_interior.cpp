@@ -136,3 +136,31 @@ TEST_CASE("the power heuristic's derivative: the two strategies' weights sum to 
   CHECK(std::abs(sum.d[0]) < 1e-12);
   CHECK(std::abs(sum.d[1]) < 1e-12);
 }
+
+TEST_CASE("moving_hit_adjoint: the reverse-mode derivative equals the dual-number one", "[interior]") {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const std::array<double, 24> centre = {0.1, 2, 0.2, -0.05, -1, 0.02, -1,   0, -1,  1, 0, -1,
+                                         0,   0, 1,   0.1,   1,  0,    -0.1, 1, 0.1, 0, 1, -0.1};
+  for (int trial = 0; trial < 8; ++trial)
+    for (bool smooth : {true, false}) {
+      const std::array<double, 24> x = random_point<24>(rng, centre, 0.05);
+      const Vec3d gx(u(rng), u(rng), u(rng)), gm(u(rng), u(rng), u(rng));
+      using D = Dual<double, 24>;
+      std::array<D, 24> v;
+      for (int i = 0; i < 24; ++i) v[size_t(i)] = D::variable(x[size_t(i)], i);
+      const Vec3<D> nd[3] = {vec(v, 15), vec(v, 18), vec(v, 21)};
+      const MovingHit<D> h = moving_hit(vec(v, 0), vec(v, 3), vec(v, 6), vec(v, 9), vec(v, 12), smooth ? nd : nullptr);
+      auto plain = [&](int first) { return Vec3d(x[size_t(first)], x[size_t(first + 1)], x[size_t(first + 2)]); };
+      const Vec3d p[3] = {plain(6), plain(9), plain(12)}, n[3] = {plain(15), plain(18), plain(21)};
+      const HitAdjoint r = moving_hit_adjoint(plain(0), plain(3), p, smooth ? n : nullptr, gx, gm);
+      const Vec3d got[8] = {r.origin, r.direction, r.p[0], r.p[1], r.p[2], r.n[0], r.n[1], r.n[2]};
+      for (int i = 0; i < 24; ++i) {
+        double want = 0;
+        for (int c = 0; c < 3; ++c) want += gx[c] * h.x[c].d[size_t(i)] + gm[c] * h.m[c].d[size_t(i)];
+        const double have = got[i / 3][i % 3];
+        INFO((smooth ? "smooth" : "flat") << ", input " << i << ": reverse " << have << ", dual " << want);
+        CHECK(std::abs(have - want) <= 1e-9 * (1 + std::abs(want)));
+      }
+    }
+}
