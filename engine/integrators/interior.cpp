@@ -288,7 +288,8 @@ void one_edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHi
   const Vec3d omega = (p - x) / r, n = plane / plane_len;
   const Vec3d normal = unit_normal(h.m, v.sign);
   const double cos_x = dot(normal, omega);
-  if (!(cos_x > 0)) return;  // diffuse: nothing arrives from below
+  // Diffuse: nothing arrives from below, and a one-sided surface seen from its back reflects nothing.
+  if (!(cos_x > 0) || !(dot(normal, -v.direction) > 0)) return;
   const Vec3f f = v.albedo * float(cos_x * kInvPiD);
   if (is_zero(f)) return;
   const float p_bsdf = float(cos_x * kInvPiD);

@@ -807,3 +807,26 @@ TEST_CASE("the edge hierarchy and the scan of every edge estimate the same secon
     CHECK(std::abs(a.mean) > 4 * a.stderr_);  // a derivative the comparison can see
   }
 }
+
+TEST_CASE("a one-sided surface seen from its back reflects nothing, and has no derivative", "[boundary]") {
+  // The shadow scene seen from below its floor, made one-sided: the camera sees the floor's back
+  // (black), so moving the blocker or the light changes nothing; every term must be exactly 0.
+  nlohmann::json j = shadow_scene(3);
+  j["materials"]["white"]["two_sided"] = false;
+  j["cameras"][0]["origin"] = {0, -1.5, 1};
+  j["cameras"][0]["target"] = {0, 0, 0};
+  auto scene = build(j);
+  const Image ones = constant_adjoint(1.f);
+  for (const char* name : {"blocker", "light"}) {
+    const int mi = mesh_index(*scene, name);
+    PathGeometryOptions po;
+    po.spp = 2;
+    po.meshes = {mi};
+    po.edge_samples = 4;
+    const GeometryGradient g = path_geometry_gradient(*scene, ones, po);
+    double norm = 0;
+    for (const Vec3d& v : g.vertices[0]) norm += length(v);
+    INFO(name);
+    CHECK(norm == 0.0);
+  }
+}
