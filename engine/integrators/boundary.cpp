@@ -90,23 +90,6 @@ bool project_end(const Camera& cam, const Vec3f& own_f, const Vec3f& other_f, En
   return true;
 }
 
-// Checks the adjoint image against the camera and sets up zero gradients for `meshes` (all when
-// empty).
-GeometryGradient empty_result(const Scene& scene, const Camera& cam, const Image& adjoint, std::vector<int> meshes) {
-  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
-    throw InputError("boundary gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
-                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
-                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
-  if (meshes.empty())
-    for (int i = 0; i < int(scene.meshes.size()); ++i) meshes.push_back(i);
-  GeometryGradient result;
-  result.meshes = meshes;
-  result.vertices.resize(meshes.size());
-  for (size_t k = 0; k < meshes.size(); ++k)
-    result.vertices[k].assign(scene.meshes[size_t(meshes[k])].vertex_count(), Vec3d(0.0));
-  return result;
-}
-
 using Accumulator = std::vector<std::vector<Vec3d>>;
 
 // Mesh index → its entry in result.vertices (−1: not wanted).
@@ -135,7 +118,7 @@ void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, Geome
 
 GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));
-  GeometryGradient result = empty_result(scene, cam, adjoint, options.meshes);
+  GeometryGradient result = empty_geometry_gradient(scene, cam, adjoint, options.meshes, "boundary gradient");
   const std::vector<int> slot = slots_of(scene, result);
 
   // Project and clip every candidate; the sampling table is over clipped projected lengths.
@@ -206,6 +189,26 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
     }
   });
   reduce_into(per_thread, result);
+  return result;
+}
+
+GeometryGradient empty_geometry_gradient(const Scene& scene, const Camera& cam, const Image& adjoint,
+                                         std::vector<int> meshes, const char* what, bool normals) {
+  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
+    throw InputError(std::string(what) + ": the adjoint image is " + std::to_string(adjoint.width) + "x" +
+                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
+                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
+  if (meshes.empty())
+    for (int i = 0; i < int(scene.meshes.size()); ++i) meshes.push_back(i);
+  GeometryGradient result;
+  result.meshes = meshes;
+  result.vertices.resize(meshes.size());
+  if (normals) result.normals.resize(meshes.size());
+  for (size_t k = 0; k < meshes.size(); ++k) {
+    const Mesh& m = scene.meshes[size_t(meshes[k])];
+    result.vertices[k].assign(m.vertex_count(), Vec3d(0.0));
+    if (normals && !m.normals.empty()) result.normals[k].assign(m.vertex_count(), Vec3d(0.0));
+  }
   return result;
 }
 

@@ -56,6 +56,11 @@ struct GeometryGradient {
   int edges = 0;           // candidate edges
 };
 
+// Checks the adjoint image against the camera (an InputError naming `what` and both sizes) and
+// sets up zero gradients for `meshes` (all when empty), with vertex-normal buffers when `normals`.
+GeometryGradient empty_geometry_gradient(const Scene& scene, const Camera& cam, const Image& adjoint,
+                                         std::vector<int> meshes, const char* what, bool normals = false);
+
 struct BoundaryOptions {
   int camera = 0;
   uint64_t samples = 0;  // edge samples (0: one per pixel)

@@ -1,7 +1,6 @@
 #include "engine/integrators/interior.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <string>
 
@@ -395,24 +394,10 @@ void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<do
 
 GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint, const PathGeometryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));
-  if (adjoint.width != cam.width || adjoint.height != cam.height || adjoint.channels != 3)
-    throw InputError("geometry gradient: the adjoint image is " + std::to_string(adjoint.width) + "x" +
-                     std::to_string(adjoint.height) + "x" + std::to_string(adjoint.channels) + ", the camera's film " +
-                     std::to_string(cam.width) + "x" + std::to_string(cam.height) + "x3");
+  GeometryGradient result = empty_geometry_gradient(scene, cam, adjoint, options.meshes, "geometry gradient", true);
   check_interior_support(scene);
-  GeometryGradient result;
-  result.meshes = options.meshes;
-  if (result.meshes.empty())
-    for (int i = 0; i < int(scene.meshes.size()); ++i) result.meshes.push_back(i);
-  result.vertices.resize(result.meshes.size());
-  result.normals.resize(result.meshes.size());
   std::vector<int> slot(scene.meshes.size(), -1);
-  for (size_t k = 0; k < result.meshes.size(); ++k) {
-    const Mesh& m = scene.meshes[size_t(result.meshes[k])];
-    slot[size_t(result.meshes[k])] = int(k);
-    result.vertices[k].assign(m.vertex_count(), Vec3d(0.0));
-    if (!m.normals.empty()) result.normals[k].assign(m.vertex_count(), Vec3d(0.0));
-  }
+  for (size_t k = 0; k < result.meshes.size(); ++k) slot[size_t(result.meshes[k])] = int(k);
   result.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(std::max(options.spp, 0));
   if (options.spp <= 0) return result;
 
