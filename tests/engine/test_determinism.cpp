@@ -11,8 +11,8 @@
 #include <cmath>
 #include <cstring>
 
-#include "engine/integrators/gradient.h"
 #include "engine/core/sampler.h"
+#include "engine/integrators/gradient.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
