@@ -18,6 +18,7 @@
 #include <functional>
 #include <iterator>
 #include <map>
+#include <memory>
 #include <optional>
 
 #include "engine/core/errors.h"
@@ -29,6 +30,8 @@
 #include "engine/io/json_node.h"
 #include "engine/io/plot.h"
 #include "engine/io/progress.h"
+#include "engine/optimize/large_steps.h"
+#include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
 #include "engine/optimize/resample.h"
 #include "engine/scene/scene_load.h"
@@ -66,6 +69,12 @@ struct OptimizedParam {
   int average_from = -1;
   std::vector<float> average;
   int average_count = 0;
+  // Large steps (large_steps.h) for a mesh's `positions`: λ > 0 turns it on; Adam then steps on
+  // u = (I + λL) x with a uniform second moment unless the config says otherwise.
+  double large_steps_lambda = 0;
+  std::shared_ptr<LargeSteps> large_steps;
+  // A mesh's `positions`: its triangles (for the surface distance and final/<shape>.ply).
+  std::vector<uint32_t> mesh_indices;
   const std::vector<float>& result(const Param& p) const { return average_count > 0 ? average : p.value; }
 };
 
@@ -268,6 +277,14 @@ Config parse_config(const std::string& path) {
     }
     if (p.has("warmup")) a.warmup = int(p.integer("warmup", 0, 0, 10000000));
     if (p.has("average_from")) op.average_from = int(p.integer("average_from", 0, 0, 10000000));
+    if (p.has("large_steps")) {
+      Node l = p.child("large_steps");
+      op.large_steps_lambda = l.number_required("lambda", 1e-6, 1e9);
+      a.uniform = l.boolean("uniform_adam", true);
+      l.finish();
+      if (p.has("bounds")) p.fail_at("bounds", "bounds cannot be combined with large_steps");
+      if (p.has("schedule")) p.fail_at("schedule", "a schedule cannot be combined with large_steps");
+    }
     if (p.has("regularizer")) {
       Node r = p.child("regularizer");
       const std::string type = r.string("type");
@@ -501,6 +518,17 @@ class Job {
       if (p.handle < 0)
         throw file_error(c_.file, "/parameters/" + p.name + ": unknown parameter (see `backlight params`)");
       p.adam.reset(scene_->params[p.handle].size());
+      const Mesh* mesh = nullptr;
+      for (size_t k = 0; k < scene_->meshes.size() && k < scene_->mesh_poses.size(); ++k)
+        if (scene_->mesh_poses[k].positions == p.handle) mesh = &scene_->meshes[k];
+      if (mesh) p.mesh_indices = mesh->indices;
+      if (p.large_steps_lambda > 0) {
+        if (!mesh)
+          throw file_error(c_.file,
+                           "/parameters/" + p.name + "/large_steps: only for a mesh's positions (<shape>.positions)");
+        p.large_steps = std::make_shared<LargeSteps>(scene_->params[p.handle].value, mesh->indices,
+                                                     p.large_steps_lambda, c_.file + ": /parameters/" + p.name);
+      }
     }
     std::vector<std::string> names;
     for (const auto& p : c_.params) names.push_back(p.name);
@@ -773,7 +801,13 @@ class Job {
         Param& param = scene_->params[p.handle];
         for (auto& g : param.grad) g /= float(per_iteration);
         loss += add_total_variation(param, p.tv_weight);
-        p.adam.step(param.value, param.grad);
+        if (p.large_steps) {
+          std::vector<float> u = p.large_steps->to_u(param.value);
+          p.adam.step(u, p.large_steps->gradient_u(param.grad));
+          param.value = p.large_steps->to_x(u);
+        } else {
+          p.adam.step(param.value, param.grad);
+        }
         if (p.average_from >= 0 && it + 1 > p.average_from) {
           if (p.average_count == 0) {
             p.average = param.value;
@@ -1181,6 +1215,25 @@ class Job {
       } else {
         final_params[p.name] = param.value;
       }
+      if (!p.mesh_indices.empty()) {
+        // The optimized mesh, for a mesh viewer: world positions, the scene's triangles.
+        std::string ply = "ply\nformat ascii 1.0\ncomment backlight optimize: " + p.name + "\nelement vertex " +
+                          std::to_string(param.value.size() / 3) +
+                          "\nproperty float x\nproperty float y\nproperty float z\nelement face " +
+                          std::to_string(p.mesh_indices.size() / 3) +
+                          "\nproperty list uchar int vertex_indices\nend_header\n";
+        char line[96];
+        for (size_t v = 0; v + 2 < param.value.size(); v += 3) {
+          std::snprintf(line, sizeof line, "%.9g %.9g %.9g\n", param.value[v], param.value[v + 1], param.value[v + 2]);
+          ply += line;
+        }
+        for (size_t t = 0; t + 2 < p.mesh_indices.size(); t += 3) {
+          std::snprintf(line, sizeof line, "3 %u %u %u\n", p.mesh_indices[t], p.mesh_indices[t + 1],
+                        p.mesh_indices[t + 2]);
+          ply += line;
+        }
+        write_text_atomic(out("final/" + p.name.substr(0, p.name.rfind('.')) + ".ply"), ply);
+      }
       if (p.ground_truth) {
         const Param& gt = *p.ground_truth;
         int w = c_.rmse_width ? c_.rmse_width : gt.width(), h = c_.rmse_height ? c_.rmse_height : gt.height();
@@ -1206,6 +1259,13 @@ class Job {
             {"rmse_final", after},
             {"rmse_reduction", after > 0 ? before / after : 0.0},
             {"rmse_resolution", is_grid(gt) ? json{gt.shape[2], gt.shape[1], gt.shape[0]} : json{w, h}}};
+        if (!p.mesh_indices.empty()) {
+          const double d0 = surface_distance(initial.value, gt.value, p.mesh_indices),
+                       d1 = surface_distance(param.value, gt.value, p.mesh_indices);
+          if (d0 >= 0 && d1 >= 0)
+            summary["parameters"][p.name]["surface_distance"] = {
+                {"initial", d0}, {"final", d1}, {"reduction", d1 > 0 ? d0 / d1 : 0.0}};
+        }
         if (p.average_count > 0) {
           summary["parameters"][p.name]["averaged_iterates"] = p.average_count;
           summary["parameters"][p.name]["rmse_last_iterate"] = last_iterate_rmse[p.name];
@@ -1238,6 +1298,11 @@ class Job {
       std::fprintf(stderr, "optimize: %s RMSE vs ground truth %.4f -> %.4f (%.1fx) at %s\n", it.key().c_str(),
                    it.value()["rmse_initial"].get<double>(), it.value()["rmse_final"].get<double>(),
                    it.value()["rmse_reduction"].get<double>(), at.c_str());
+      if (it.value().contains("surface_distance")) {
+        const json& d = it.value()["surface_distance"];
+        std::fprintf(stderr, "optimize: %s surface distance to the truth %.5f -> %.5f (%.1fx)\n", it.key().c_str(),
+                     d["initial"].get<double>(), d["final"].get<double>(), d["reduction"].get<double>());
+      }
     }
   }
 };

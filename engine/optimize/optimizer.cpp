@@ -5,6 +5,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 namespace bl {
 
@@ -49,25 +50,55 @@ void Adam::step(std::vector<float>& value, const std::vector<float>& gradient) {
   const double correction2 = 1.0 - std::pow(s_.beta2, double(t_));
   const bool half = s_.bf16_moments;
   const uint64_t step_key = uint64_t(uint32_t(global_t_)) << 32;
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, value.size(), size_t(1) << 14), [&](const auto& range) {
-    for (size_t i = range.begin(); i != range.end(); ++i) {
-      const double g = gradient[i];
-      const double m_old = half ? bf16_to_float(m16[i]) : m[i];
-      const double v_old = half ? bf16_to_float(v16[i]) : v[i];
-      double mi = s_.beta1 * m_old + (1.0 - s_.beta1) * g;
-      double vi = s_.beta2 * v_old + (1.0 - s_.beta2) * g * g;
-      if (half) {
-        const uint32_t r = mix32(step_key ^ uint64_t(i));
-        m16[i] = float_to_bf16(float(mi), uint16_t(r));
-        v16[i] = float_to_bf16(float(vi), uint16_t(r >> 16));
-        // The step uses the stored moments, so a resumed run continues bit for bit.
-        mi = bf16_to_float(m16[i]);
-        vi = bf16_to_float(v16[i]);
-      } else {
-        m[i] = float(mi);
-        v[i] = float(vi);
+  // New moments of element i, stored, and returned as the step uses them.
+  auto moments = [&](size_t i, double& mi, double& vi) {
+    const double g = gradient[i];
+    const double m_old = half ? bf16_to_float(m16[i]) : m[i];
+    const double v_old = half ? bf16_to_float(v16[i]) : v[i];
+    mi = s_.beta1 * m_old + (1.0 - s_.beta1) * g;
+    vi = s_.beta2 * v_old + (1.0 - s_.beta2) * g * g;
+    if (half) {
+      const uint32_t r = mix32(step_key ^ uint64_t(i));
+      m16[i] = float_to_bf16(float(mi), uint16_t(r));
+      v16[i] = float_to_bf16(float(vi), uint16_t(r >> 16));
+      // The step uses the stored moments, so a resumed run continues bit for bit.
+      mi = bf16_to_float(m16[i]);
+      vi = bf16_to_float(v16[i]);
+    } else {
+      m[i] = float(mi);
+      v[i] = float(vi);
+    }
+  };
+  const size_t grain = size_t(1) << 14;
+  if (!s_.uniform) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, value.size(), grain), [&](const auto& range) {
+      for (size_t i = range.begin(); i != range.end(); ++i) {
+        double mi, vi;
+        moments(i, mi, vi);
+        const double update = lr * (mi / correction1) / (std::sqrt(vi / correction2) + s_.epsilon);
+        value[i] = std::clamp(float(double(value[i]) - update), s_.lower, s_.upper);
       }
-      const double update = lr * (mi / correction1) / (std::sqrt(vi / correction2) + s_.epsilon);
+    });
+    return;
+  }
+  // Uniform: one second moment for the whole parameter, the largest element's, so every element
+  // steps by the same scale and a preconditioned gradient keeps its shape (see AdamSettings).
+  std::vector<double> first(value.size());
+  const double vmax = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, value.size(), grain), 0.0,
+      [&](const auto& range, double acc) {
+        for (size_t i = range.begin(); i != range.end(); ++i) {
+          double vi;
+          moments(i, first[i], vi);
+          acc = std::max(acc, vi);
+        }
+        return acc;
+      },
+      [](double a, double b) { return std::max(a, b); });
+  const double denominator = std::sqrt(vmax / correction2) + s_.epsilon;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, value.size(), grain), [&](const auto& range) {
+    for (size_t i = range.begin(); i != range.end(); ++i) {
+      const double update = lr * (first[i] / correction1) / denominator;
       value[i] = std::clamp(float(double(value[i]) - update), s_.lower, s_.upper);
     }
   });

@@ -23,6 +23,11 @@ struct AdamSettings {
   // Storage of the two moments: float32, or bfloat16 with stochastic rounding (half the memory;
   // 8 significant bits, unbiased, see float_to_bf16).
   bool bf16_moments = false;
+  // Uniform second moment (Nicolet et al. 2021's "uniform Adam"): every element divides by the
+  // largest element's √v̂ instead of its own, so the step keeps the gradient's shape. Used with
+  // large steps (large_steps.h): per-element normalisation would undo the preconditioner's
+  // smoothing, scaling the damped high frequencies back up.
+  bool uniform = false;
 };
 
 // bfloat16: the upper 16 bits of a float (same exponent range, 8 significant bits).

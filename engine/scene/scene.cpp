@@ -175,6 +175,7 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
 #include "engine/io/image_io.h"
+#include "engine/scene/mesh_io.h"
 #include "engine/scene/scene_load.h"
 
 namespace bl {
@@ -321,6 +322,14 @@ void apply_override(Scene& scene, const std::string& assignment) {
                        "' has shape " + scene.params.shape_string(h));
     }
     values = std::move(grid.data);
+  } else if (p.geometry && p.shape.size() == 2 && p.shape[1] == 3 && std::filesystem::path(rhs).extension() == ".ply") {
+    // A mesh's positions from a PLY file with the same vertices in the same order (a deformed copy
+    // of the mesh): its vertices are taken as world positions, no shape transform applied.
+    const Mesh m = read_ply(rhs);
+    if (m.positions.size() != size_t(p.shape[0]))
+      throw InputError(rhs + ": the PLY file has " + std::to_string(m.positions.size()) + " vertices but parameter '" +
+                       name + "' has shape " + scene.params.shape_string(h));
+    for (const Vec3f& v : m.positions) values.insert(values.end(), {v.x, v.y, v.z});
   } else {
     values.clear();
     Image img = read_image(rhs, !p.is_image() ? false : true);

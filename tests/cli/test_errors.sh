@@ -267,6 +267,8 @@ pose_ones="$tmp/pose_adjoint.exr" cornell_ones="$tmp/cornell_adjoint.exr"
 "$bin" render "$cornell" -o "$cornell_ones" --resolution 32x32 --spp 1 -q 2>/dev/null || fail "render of cornell failed"
 expect_error set_positions_count "box.positions" "got 5 values" "[24,3]" -- \
   render "$pose" -o o.exr --set box.positions=1,2,3,4,5
+expect_error set_positions_ply_count "sphere.ply" "2562 vertices" "box.positions" "[24,3]" -- \
+  render "$pose" -o o.exr --set "box.positions=$repo/scenes/deform/sphere.ply"
 expect_error set_pose_nan "box.rotate" "re:NaN|not a (finite )?number" -- render "$pose" -o o.exr --set box.rotate=0,nan,0
 expect_error set_degenerate "box" "triangle 0" "degenerate" -- render "$pose" -o o.exr --set box.positions=0.5
 expect_error set_camera_nan "front.origin" "re:NaN|finite" -- render "$pose" -o o.exr --set front.origin=1,inf,0

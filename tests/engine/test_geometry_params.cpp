@@ -10,6 +10,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/integrators/gradient.h"
+#include "engine/scene/mesh_io.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
@@ -190,4 +191,23 @@ TEST_CASE("geometry parameter gradients against finite differences, away from th
     dir[3 * v + 2] = d.z;
   }
   check_direction(*scene, "box.positions", dir, 0.005);
+}
+
+TEST_CASE("a mesh's positions can be set from a PLY file of the same vertices", "[geometry]") {
+  const std::string dir = std::string(BL_SOURCE_DIR) + "/scenes/deform/";
+  auto scene = load_scene(dir + "scene.json");
+  const int h = scene->params.find("blob.positions");
+  REQUIRE(h >= 0);
+  REQUIRE(scene->params[h].shape == std::vector<int>{2562, 3});
+  const Mesh target = read_ply(dir + "target.ply");
+  apply_override(*scene, "blob.positions=" + dir + "target.ply");
+  const Param& p = scene->params[h];
+  size_t differ = 0;
+  for (size_t v = 0; v < target.positions.size(); ++v)
+    differ += p.value[3 * v] != target.positions[v].x || p.value[3 * v + 1] != target.positions[v].y ||
+              p.value[3 * v + 2] != target.positions[v].z;
+  CHECK(differ == 0);
+  // The mesh is re-posed: its world vertices are the file's (identity pose).
+  CHECK(scene->meshes[0].positions[17].y == target.positions[17].y);
+  CHECK_THROWS_WITH(apply_override(*scene, "blob.rotate=" + dir + "target.ply"), Catch::Contains("target.ply"));
 }

@@ -11,6 +11,8 @@
 
 #include "engine/core/errors.h"
 #include "engine/io/image_io.h"
+#include "engine/optimize/large_steps.h"
+#include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
 #include "test_scenes.h"
 
@@ -418,6 +420,23 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": [{"origin": [0, 1, 0], "fov": 40}], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/views/cameras/0: missing required key 'target'");
+  // Large steps: only for a mesh's positions, not with bounds, λ > 0.
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "large_steps": {"lambda": 10}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.albedo/large_steps: only for a mesh's positions");
+  expect_error(
+      head +
+          R"("parameters": {"floor.positions": {"lr": 0.1, "bounds": [0, 1], "large_steps": {"lambda": 10}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.positions/bounds: bounds cannot be combined with large_steps");
+  expect_error(
+      head +
+          R"("parameters": {"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 0}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "/parameters/floor.positions/large_steps/lambda");
+  expect_error(
+      head +
+          R"("parameters": {"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 5, "lamda": 1}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "unknown key 'lamda'");
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
@@ -446,4 +465,139 @@ TEST_CASE("cached reference targets are re-rendered when the scene or the refere
   double ratio = 0;
   for (size_t i = 0; i < first.size(); ++i) ratio += double(second[i]) / std::max(double(first[i]), 1e-6);
   CHECK(ratio / double(first.size()) == Approx(2.0).epsilon(0.05));
+}
+
+namespace {
+
+// A closed triangulated octahedron with vertex 0 duplicated as vertex 6 (a seam: triangles 4..7 use
+// the copy), positions [N, 3] row-major.
+struct SeamMesh {
+  std::vector<float> x{0, 1, 0, 1, 0, 0, 0, 0, 1, -1, 0, 0, 0, 0, -1, 0, -1, 0, 0, 1, 0};
+  std::vector<uint32_t> indices{0, 2, 1, 0, 3, 2, 0, 4, 3, 0, 1, 4, 5, 1, 2, 5, 2, 3, 5, 3, 4, 5, 4, 1};
+  SeamMesh() {  // the lower half's triangles use the top copy through a seam vertex
+    indices = {0, 2, 1, 6, 3, 2, 0, 4, 3, 6, 1, 4, 5, 1, 2, 5, 2, 3, 5, 3, 4, 5, 4, 1};
+  }
+};
+
+}  // namespace
+
+TEST_CASE("large steps: u = (I + lambda L) x round-trips and the u-gradient is the chain rule",
+          "[optimizer][large_steps]") {
+  SeamMesh mesh;
+  const double lambda = 3.0;
+  LargeSteps ls(mesh.x, mesh.indices, lambda, "test");
+  CHECK(ls.vertex_count() == 7);
+  CHECK(ls.node_count() == 6);  // the seam copy is welded to vertex 0
+  // u = M x by hand for the apex (vertex 0, neighbours 1..4 through either copy): degree 4.
+  const std::vector<float> u = ls.to_u(mesh.x);
+  const double apex_y = (1 + 4 * lambda) * 1.0 - lambda * (0 + 0 + 0 + 0);
+  CHECK(u[1] == Approx(apex_y));
+  CHECK(u[3 * 6 + 1] == Approx(apex_y));  // the copy carries the same u
+  // Vertex 1 = (1,0,0): neighbours 0, 2, 4, 5 → u_x = (1 + 4λ)·1 − λ·(0 + 0 + 0 + 0).
+  CHECK(u[3] == Approx(1 + 4 * lambda));
+  const std::vector<float> back = ls.to_x(u);
+  for (size_t i = 0; i < back.size(); ++i) CHECK(back[i] == Approx(mesh.x[i]).margin(1e-6));
+  // Chain rule: f(x) = Σ w·x. Central differences of f(to_x(u)) in u vs gradient_u(w); a
+  // perturbation of one copy of the seam vertex moves the node by half (to_x averages copies), so
+  // the derivative per copy is half the node's: compare the sum over the two copies.
+  std::vector<float> w(mesh.x.size());
+  for (size_t i = 0; i < w.size(); ++i) w[i] = float(std::sin(1.7 * double(i) + 0.3));
+  const std::vector<float> gu = ls.gradient_u(w);
+  auto f = [&](const std::vector<float>& uu) {
+    const std::vector<float> xx = ls.to_x(uu);
+    double s = 0;
+    for (size_t i = 0; i < xx.size(); ++i) s += double(w[i]) * double(xx[i]);
+    return s;
+  };
+  const float h = 1e-2f;
+  for (size_t i = 3; i < 18; ++i) {  // vertices 1..5 (no seam)
+    std::vector<float> up = u, dn = u;
+    up[i] += h, dn[i] -= h;
+    CHECK(gu[i] == Approx((f(up) - f(dn)) / (2 * h)).epsilon(1e-3).margin(1e-4));
+  }
+  for (size_t k = 0; k < 3; ++k) {  // the seam node: perturb both copies together
+    std::vector<float> up = u, dn = u;
+    up[k] += h, up[18 + k] += h, dn[k] -= h, dn[18 + k] -= h;
+    CHECK(gu[k] == Approx((f(up) - f(dn)) / (2 * h)).epsilon(1e-3).margin(1e-4));
+    CHECK(gu[18 + k] == gu[k]);
+  }
+}
+
+TEST_CASE("large steps damp a one-vertex spike into a smooth bump and keep seams closed", "[optimizer][large_steps]") {
+  SeamMesh mesh;
+  LargeSteps ls(mesh.x, mesh.indices, 10.0, "test");
+  std::vector<float> g(mesh.x.size(), 0.f);
+  g[3 * 2 + 2] = 1.f;  // a gradient on vertex 2's z only
+  const std::vector<float> gu = ls.gradient_u(g);
+  // M⁻¹ is a positive smoothing kernel: the vertex keeps the largest share, its neighbours (0, 1,
+  // 3, 5) less, the opposite vertex 4 least, all positive.
+  const float self = gu[8], neighbour = gu[3 * 1 + 2], opposite = gu[3 * 4 + 2];
+  CHECK(self > neighbour);
+  CHECK(neighbour > opposite);
+  CHECK(opposite > 0.f);
+  CHECK(self < 1.f);
+  // Rows of M sum to 1 (L annihilates constants), so M⁻¹ preserves the total: Σ M⁻¹g = Σ g over
+  // nodes (the welded node counts once).
+  double total = 0;
+  for (size_t v = 0; v < 6; ++v) total += gu[3 * v + 2];
+  CHECK(total == Approx(1.0).epsilon(1e-5));
+  // A step through u leaves the seam's copies at one position.
+  std::vector<float> u = ls.to_u(mesh.x);
+  for (size_t i = 0; i < u.size(); ++i) u[i] -= 0.3f * ls.gradient_u(g)[i];
+  const std::vector<float> x = ls.to_x(u);
+  for (size_t k = 0; k < 3; ++k) CHECK(x[k] == x[18 + k]);
+  CHECK_THROWS_AS(LargeSteps(mesh.x, {0, 1, 9}, 1.0, "test"), InputError);
+  CHECK_THROWS_AS(LargeSteps(mesh.x, mesh.indices, 0.0, "test"), InputError);
+}
+
+TEST_CASE("uniform Adam divides every element by the largest second moment", "[optimizer][large_steps]") {
+  AdamSettings s;
+  s.learning_rate = 0.1;
+  s.uniform = true;
+  Adam adam(s);
+  std::vector<float> x{0.f, 0.f, 0.f}, g{4.f, -1.f, 0.5f};
+  adam.step(x, g);
+  // Step 1: m̂ = g, v̂ = g², max √v̂ = 4: every element moves lr·g/4, keeping the gradient's shape.
+  CHECK(x[0] == Approx(-0.1).margin(1e-6));
+  CHECK(x[1] == Approx(0.025).margin(1e-6));
+  CHECK(x[2] == Approx(-0.0125).margin(1e-6));
+  // Plain Adam would have moved each by ±lr.
+  AdamSettings p = s;
+  p.uniform = false;
+  Adam plain(p);
+  std::vector<float> y{0.f, 0.f, 0.f};
+  plain.step(y, g);
+  CHECK(y[2] == Approx(-0.1).margin(1e-6));
+}
+
+TEST_CASE("surface distance: zero for sliding vertices, the offset for a moved surface", "[optimizer][large_steps]") {
+  // A 3×3-vertex grid of the unit square (8 triangles) in z = 0.
+  std::vector<float> a;
+  for (int y = 0; y < 3; ++y)
+    for (int x = 0; x < 3; ++x) a.insert(a.end(), {0.5f * float(x), 0.5f * float(y), 0.f});
+  std::vector<uint32_t> idx;
+  for (uint32_t y = 0; y < 2; ++y)
+    for (uint32_t x = 0; x < 2; ++x) {
+      const uint32_t v = 3 * y + x;
+      idx.insert(idx.end(), {v, v + 1, v + 4, v, v + 4, v + 3});
+    }
+  CHECK(surface_distance(a, a, idx) == 0.0);
+  // The centre vertex slides within the plane: the vertex error is 0.2/3 per coordinate, the
+  // surface does not move.
+  std::vector<float> slid = a;
+  slid[3 * 4] += 0.2f;
+  CHECK(surface_distance(a, slid, idx) == Approx(0.0).margin(1e-12));
+  // The whole surface lifted by 0.25: every vertex is 0.25 from the other surface.
+  std::vector<float> lifted = a;
+  for (size_t v = 0; v < 9; ++v) lifted[3 * v + 2] += 0.25f;
+  CHECK(surface_distance(a, lifted, idx) == Approx(0.25));
+  // Only the centre vertex lifted by h: a's centre is within h of b's tent, b's apex exactly h
+  // from a's plane, the other vertices lie on both surfaces: (h·c + h)/(2·9) with c ∈ (0, 1].
+  std::vector<float> tent = a;
+  tent[3 * 4 + 2] += 0.3f;
+  const double d = surface_distance(a, tent, idx);
+  CHECK(d > 0.3 / 18.0);
+  CHECK(d <= 0.6 / 18.0 + 1e-9);
+  // Mismatched inputs.
+  CHECK(surface_distance(a, std::vector<float>(a.begin(), a.end() - 3), idx) == -1.0);
 }
