@@ -178,6 +178,9 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
     const Vec3d pivot(pose.pivot), centre = pivot + t;
     Vec3d g_t(0.0), g_w(0.0), g_s(0.0);
     const bool want_positions = wants(P, pose.positions);
+    // Smooth meshes: the rest normals follow the rest positions (MeshPose).
+    const bool normals_follow = want_positions && !gn.empty() && !pose.loaded_normals.empty();
+    std::vector<Vec3d> g_n0(normals_follow ? mesh.vertex_count() : 0, Vec3d(0.0));
     for (size_t v = 0; v < mesh.vertex_count(); ++v) {
       const Vec3d& d = gv[v];
       const Vec3d local = R.apply_transpose(d);
@@ -200,8 +203,11 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
         const Vec3d wh = w / wl, h = R.apply_transpose(dn);
         const Vec3d perp = h - wh * dot(wh, h);
         for (int c = 0; c < 3; ++c) g_s[c] -= perp[c] * n0[c] / (s[c] * s[c] * wl);
+        // ∂n/∂n₀ = R (I − ŵŵᵀ) diag(1/s) / |w|.
+        if (normals_follow) g_n0[v] = perp / (s * wl);
       }
     }
+    if (normals_follow) add_rest_normal_gradient(pose, mesh, P[pose.positions].value, g_n0, P[pose.positions].grad);
     if (wants(P, pose.translate)) add_vec(P[pose.translate], g_t);
     if (wants(P, pose.rotate)) add_vec(P[pose.rotate], left_jacobian_transpose(r, g_w));
     if (wants(P, pose.scale)) add_vec(P[pose.scale], g_s);

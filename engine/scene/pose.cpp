@@ -1,8 +1,12 @@
 // Geometry parameters: shape poses, vertex positions and camera poses (scene.h: MeshPose,
 // CameraPose), applied to the meshes and cameras whenever their values change.
+#include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <string>
+#include <unordered_map>
 
+#include "engine/core/dual.h"
 #include "engine/core/errors.h"
 #include "engine/scene/scene.h"
 
@@ -90,6 +94,31 @@ void Scene::add_geometry_params() {
     positions.lower = -1e30f;
     positions.geometry = true;
     pose.positions = add_if_free(params, std::move(positions), source);
+    if (pose.positions >= 0 && !m.normals.empty()) {
+      // Normal groups: bitwise-equal position and loaded normal.
+      struct Key {
+        uint32_t b[6];
+        bool operator==(const Key& o) const { return std::memcmp(b, o.b, sizeof b) == 0; }
+      };
+      struct KeyHash {
+        size_t operator()(const Key& k) const {
+          uint64_t h = 0x9e3779b97f4a7c15ull;
+          for (uint32_t x : k.b) h = (h ^ x) * 0xbf58476d1ce4e5b9ull;
+          return size_t(h ^ (h >> 29));
+        }
+      };
+      std::unordered_map<Key, uint32_t, KeyHash> ids;
+      pose.normal_group.resize(m.vertex_count());
+      for (size_t v = 0; v < m.vertex_count(); ++v) {
+        Key k;
+        std::memcpy(k.b, &m.positions[v], 12);
+        std::memcpy(k.b + 3, &m.normals[v], 12);
+        pose.normal_group[v] = ids.try_emplace(k, uint32_t(ids.size())).first->second;
+      }
+      pose.loaded_normals = m.normals;
+      for (const Vec3d& g : group_area_normals(pose, m, params[pose.positions].value))
+        pose.loaded_group_normal.push_back(normalize(g));
+    }
   }
   camera_poses.resize(cameras.size());
   for (size_t i = 0; i < cameras.size(); ++i) {
@@ -107,6 +136,52 @@ void Scene::add_geometry_params() {
   }
   for (CameraPose& pose : camera_poses)
     for (int h : {pose.origin, pose.rotate}) append(pose.applied, h >= 0 ? &params[h] : nullptr);
+}
+
+std::vector<Vec3d> group_area_normals(const MeshPose& pose, const Mesh& mesh, const std::vector<float>& p0) {
+  uint32_t groups = 0;
+  for (uint32_t g : pose.normal_group) groups = std::max(groups, g + 1);
+  std::vector<Vec3d> out(groups, Vec3d(0.0));
+  auto at = [&](uint32_t i) { return Vec3d(p0[3 * size_t(i)], p0[3 * size_t(i) + 1], p0[3 * size_t(i) + 2]); };
+  for (size_t t = 0; t < mesh.triangle_count(); ++t) {
+    const uint32_t* i = &mesh.indices[3 * t];
+    const Vec3d c = cross(at(i[1]) - at(i[0]), at(i[2]) - at(i[0]));
+    for (int k = 0; k < 3; ++k) out[pose.normal_group[i[k]]] += c;
+  }
+  return out;
+}
+
+void add_rest_normal_gradient(const MeshPose& pose, const Mesh& mesh, const std::vector<float>& p0,
+                              const std::vector<Vec3d>& g_n0, std::vector<float>& grad) {
+  if (pose.loaded_normals.empty()) return;
+  const std::vector<Vec3d> groups = group_area_normals(pose, mesh, p0);
+  // Per group: g_m = Σ over its vertices of (∂n₀/∂m)ᵀ g_n₀ (duals give the 3×3 Jacobian).
+  using D = Dual<double, 3>;
+  std::vector<Vec3d> g_m(groups.size(), Vec3d(0.0));
+  for (size_t v = 0; v < mesh.vertex_count(); ++v) {
+    const Vec3d& g = g_n0[v];
+    if (g.x == 0 && g.y == 0 && g.z == 0) continue;
+    const uint32_t k = pose.normal_group[v];
+    const Vec3d& m = groups[k];
+    const Vec3<D> n = rest_normal_from(Vec3<D>{D::variable(m.x, 0), D::variable(m.y, 1), D::variable(m.z, 2)},
+                                       pose.loaded_group_normal[k], Vec3d(pose.loaded_normals[v]));
+    for (int c = 0; c < 3; ++c) g_m[k][c] += g.x * n.x.d[size_t(c)] + g.y * n.y.d[size_t(c)] + g.z * n.z.d[size_t(c)];
+  }
+  // m = Σ c_t, c_t = (p₁ − p₀) × (p₂ − p₀): g·dc = de₁·(e₂ × g) + de₂·(g × e₁).
+  auto at = [&](uint32_t i) { return Vec3d(p0[3 * size_t(i)], p0[3 * size_t(i) + 1], p0[3 * size_t(i) + 2]); };
+  auto add = [&](uint32_t i, const Vec3d& d) {
+    for (int c = 0; c < 3; ++c) grad[3 * size_t(i) + size_t(c)] += float(d[c]);
+  };
+  for (size_t t = 0; t < mesh.triangle_count(); ++t) {
+    const uint32_t* i = &mesh.indices[3 * t];
+    const Vec3d g = g_m[pose.normal_group[i[0]]] + g_m[pose.normal_group[i[1]]] + g_m[pose.normal_group[i[2]]];
+    if (g.x == 0 && g.y == 0 && g.z == 0) continue;
+    const Vec3d e1 = at(i[1]) - at(i[0]), e2 = at(i[2]) - at(i[0]);
+    const Vec3d d1 = cross(e2, g), d2 = cross(g, e1);
+    add(i[1], d1);
+    add(i[2], d2);
+    add(i[0], -(d1 + d2));
+  }
 }
 
 bool Scene::update_geometry() {
@@ -127,6 +202,18 @@ bool Scene::update_geometry() {
     const Rotation R = rotation_of(r);
     const Vec3d pivot(pose.pivot);
     const std::vector<float>* p0 = pose.positions >= 0 ? &params[pose.positions].value : nullptr;
+    if (p0 && !pose.loaded_normals.empty()) {
+      const std::vector<Vec3d> groups = group_area_normals(pose, m, *p0);
+      for (size_t v = 0; v < m.vertex_count(); ++v) {
+        const uint32_t g = pose.normal_group[v];
+        const Vec3d& a = pose.loaded_group_normal[g];
+        // Exactly the loaded normal while the group's normal is exactly as loaded.
+        const Vec3d b = normalize(groups[g]);
+        pose.rest_normals[v] = b.x == a.x && b.y == a.y && b.z == a.z
+                                   ? pose.loaded_normals[v]
+                                   : Vec3f(rest_normal_from(groups[g], a, Vec3d(pose.loaded_normals[v])));
+      }
+    }
     for (size_t v = 0; v < m.vertex_count(); ++v) {
       const Vec3d rest = p0 ? Vec3d((*p0)[3 * v], (*p0)[3 * v + 1], (*p0)[3 * v + 2]) : Vec3d(m.positions[v]);
       m.positions[v] = Vec3f(pivot + t + R.apply((rest - pivot) * s));

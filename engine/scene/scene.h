@@ -41,13 +41,21 @@ struct Mesh {
 // state: positions p = pivot + t + R(r) · (s ⊙ (p₀ − pivot)) with p₀ the `positions` parameter
 // (world space, initially as loaded), t = `translate`, r = `rotate` (axis-angle, radians),
 // s = `scale`, pivot = the loaded vertices' centroid; vertex normals n = R · normalise(n₀ ⊘ s)
-// from the loaded ones (they are not recomputed when p₀ changes).
+// with n₀ the rest normals. n₀ follows p₀ (smooth meshes): vertices at bitwise-equal positions
+// with bitwise-equal loaded normals form a group (a uv seam shares its normal, a hard edge does
+// not), whose area-weighted normal is a at the loaded positions and b now; a vertex's n₀ is its
+// loaded normal turned by the smallest rotation taking a to b (rest_normal_from). So loaded
+// normals (analytic, authored) stay exactly as they are until the positions move, and then turn
+// with the surface.
 struct MeshPose {
   int translate = -1, rotate = -1, scale = -1, positions = -1;
   Vec3f pivot;
-  std::vector<Vec3f> rest_normals;
-  std::vector<double> rest_areas;  // per triangle, to detect triangles a step made degenerate
-  std::vector<float> applied;      // the parameter values the mesh was last posed with
+  std::vector<Vec3f> rest_normals;         // n₀ now (the loaded normals until p₀ moves)
+  std::vector<Vec3f> loaded_normals;       // smooth meshes with a positions parameter: as loaded
+  std::vector<uint32_t> normal_group;      // per vertex, with loaded_normals
+  std::vector<Vec3d> loaded_group_normal;  // per group: a, the unit area-weighted normal as loaded
+  std::vector<double> rest_areas;          // per triangle, to detect triangles a step made degenerate
+  std::vector<float> applied;              // the parameter values the mesh was last posed with
 };
 
 // A camera's pose parameters: `origin` (world position) and `rotate` (axis-angle about the
@@ -66,6 +74,27 @@ struct Rotation {
   Vec3d apply_transpose(const Vec3d& v) const { return row[0] * v.x + row[1] * v.y + row[2] * v.z; }
 };
 Rotation rotation_of(const Vec3d& r);
+
+// A rest normal from its group's area-weighted normal m (unnormalised, see MeshPose): the loaded
+// normal `loaded` turned by the smallest rotation taking the group's loaded unit normal `a` to
+// m/|m|. A template so the gradient can take its Jacobian with duals.
+template <class T>
+Vec3<T> rest_normal_from(const Vec3<T>& m, const Vec3d& a, const Vec3d& loaded) {
+  const Vec3<T> b = normalize(m);
+  const Vec3<T> A(a), n(loaded);
+  const Vec3<T> v = cross(A, b);
+  const T c = dot(A, b);
+  if (!(value_of(c) > -0.999999)) return b;  // turned half-way round: the loaded offset is meaningless
+  const T k = dot(v, n) / (T(1.0) + c);
+  return normalize(n * c + cross(v, n) + v * k);
+}
+// Per group of a smooth mesh's vertices: Σ (p₁ − p₀) × (p₂ − p₀) over the triangles touching it,
+// from the rest positions p₀ ([N, 3]).
+std::vector<Vec3d> group_area_normals(const MeshPose& pose, const Mesh& mesh, const std::vector<float>& p0);
+// Adds to `grad` ([N, 3], the positions parameter's gradient) what reaches the rest positions p₀
+// through the rest normals, given the gradient g_n0 with respect to each vertex's rest normal.
+void add_rest_normal_gradient(const MeshPose& pose, const Mesh& mesh, const std::vector<float>& p0,
+                              const std::vector<Vec3d>& g_n0, std::vector<float>& grad);
 Vec3d left_jacobian_transpose(const Vec3d& r, const Vec3d& g);
 
 struct IntegratorSettings {
