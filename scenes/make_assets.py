@@ -6,6 +6,8 @@
     scenes/gltf/scene.gltf/.bin  a small glTF 2.0 scene (ground, two cubes, emissive quad, camera)
     scenes/smoke/density.vol     128³ procedural smoke density (Mitsuba .vol; 8 MB, not committed)
     scenes/smoke/sky.pfm         64x32 sky environment map (latitude-longitude, linear RGB)
+    scenes/deform/sphere.ply     unit icosphere (4 subdivisions: 2562 vertices, 5120 triangles)
+    scenes/deform/target.ply     the same vertices moved onto a smooth non-spherical blob
 
 `--smoke` makes only the smoke assets (what `tools/quickstart volume` needs).
 
@@ -532,6 +534,71 @@ def make_smoke():
     write_if_changed(SMOKE / "sky.pfm", pfm_bytes(sky()))
 
 
+DEFORM = SCENES / "deform"
+
+
+def icosphere(subdivisions):
+    """Unit icosphere: vertices on the sphere, triangles counter-clockwise seen from outside."""
+    t = (1.0 + math.sqrt(5.0)) / 2.0
+    verts = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+             (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    verts = [np.array(v, dtype=np.float64) / np.linalg.norm(v) for v in verts]
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    for _ in range(subdivisions):
+        midpoint = {}
+
+        def mid(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in midpoint:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                midpoint[key] = len(verts) - 1
+            return midpoint[key]
+
+        new_faces = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            new_faces += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = new_faces
+    return np.array(verts), np.array(faces, dtype=np.int64)
+
+
+def blob(p):
+    """The deformation target: each unit-sphere vertex moved radially onto a smooth blob (bumps of
+    radius ~0.5, a dent, and an elongation), at most ~0.35 from the sphere."""
+    def bump(centre, width):
+        c = np.array(centre, dtype=np.float64)
+        c /= np.linalg.norm(c)
+        return np.exp(-np.sum((p - c) ** 2, axis=1) / width)
+
+    r = (1.0 + 0.35 * bump((0.6, 0.7, 0.3), 0.25) + 0.3 * bump((-0.7, -0.2, 0.6), 0.2)
+         + 0.25 * bump((0.1, -0.8, -0.6), 0.3) - 0.15 * bump((-0.3, 0.5, -0.8), 0.3))
+    q = p * r[:, None]
+    return q * np.array([1.12, 0.9, 1.0])
+
+
+def ply_bytes(verts, faces):
+    head = ("ply\nformat ascii 1.0\ncomment scenes/make_assets.py\n"
+            f"element vertex {len(verts)}\nproperty float x\nproperty float y\nproperty float z\n"
+            f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    body = "".join(f"{v[0]:.6f} {v[1]:.6f} {v[2]:.6f}\n" for v in verts)
+    body += "".join(f"3 {a} {b} {c}\n" for a, b, c in faces)
+    return (head + body).encode()
+
+
+def make_deform():
+    DEFORM.mkdir(exist_ok=True)
+    verts, faces = icosphere(4)
+    write_if_changed(DEFORM / "sphere.ply", ply_bytes(verts, faces))
+    write_if_changed(DEFORM / "target.ply", ply_bytes(blob(verts), faces))
+    for name, expect in (("sphere.ply", verts), ("target.ply", blob(verts))):
+        text = (DEFORM / name).read_text().split("end_header\n")[1].splitlines()
+        back = np.array([[float(x) for x in line.split()] for line in text[:len(expect)]])
+        assert np.abs(back - expect).max() < 1e-5, name + " read-back mismatch"
+
+
 def main():
     if sys.argv[1:] == ["--smoke"]:
         make_smoke()
@@ -542,6 +609,7 @@ def main():
     make_wall()
     make_gltf()
     make_smoke()
+    make_deform()
     return 0
 
 
