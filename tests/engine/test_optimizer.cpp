@@ -14,6 +14,7 @@
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
+#include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
 using namespace bl;
@@ -600,4 +601,35 @@ TEST_CASE("surface distance: zero for sliding vertices, the offset for a moved s
   CHECK(d <= 0.6 / 18.0 + 1e-9);
   // Mismatched inputs.
   CHECK(surface_distance(a, std::vector<float>(a.begin(), a.end() - 3), idx) == -1.0);
+}
+
+TEST_CASE("the bundled optimize configs are valid, and the deformation job runs with large steps", "[optimizer][large_steps]") {
+  const std::string root = BL_SOURCE_DIR;
+  for (const auto& entry : fs::directory_iterator(root + "/scenes")) {
+    const fs::path config = entry.path() / "optimize.json";
+    if (!fs::exists(config)) continue;
+    INFO(config.string());
+    CHECK_NOTHROW(check_optimize_config(config.string()));
+  }
+  // scenes/deform/optimize.json, 4 iterations into a temporary folder.
+  const std::string dir = test::temp_dir("deform-job");
+  nlohmann::json job = read_json(root + "/scenes/deform/optimize.json");
+  job["scene"] = root + "/scenes/deform/scene.json";
+  job["views"]["reference"]["set"]["blob.positions"] = root + "/scenes/deform/target.ply";
+  job["views"]["reference"]["spp"] = 4;
+  job["output"] = dir + "/out";
+  job["iterations"] = 4;
+  job["resolution"] = {24, 24};
+  std::ofstream(dir + "/job.json") << job.dump();
+  REQUIRE(run_optimize(dir + "/job.json", "", 0, true) == 0);
+  const auto summary = read_json(dir + "/out/summary.json");
+  const auto& d = summary["parameters"]["blob.positions"]["surface_distance"];
+  CHECK(d["initial"].get<double>() == Approx(0.0829).epsilon(0.01));  // sphere vs blob, measured in python too
+  CHECK(d["final"].get<double>() < d["initial"].get<double>());
+  // final/blob.ply: the optimized vertices, readable as the positions of the same mesh.
+  auto scene = load_scene(root + "/scenes/deform/scene.json");
+  apply_override(*scene, "blob.positions=" + dir + "/out/final/blob.ply");
+  const auto final_params = read_json(dir + "/out/final/params.json");
+  const std::vector<float> expect = final_params["blob.positions"].get<std::vector<float>>();
+  CHECK(scene->params[scene->params.find("blob.positions")].value == expect);
 }
