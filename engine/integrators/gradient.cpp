@@ -124,8 +124,6 @@ Vec3d value3(const ParamStore& p, int handle, const Vec3d& fallback) {
 void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientRequest& rq) {
   ParamStore& P = scene.params;
   if (!P.wants_geometry()) return;
-  if (rq.method == GradientMethod::Taped)
-    throw InputError(scene.source + ": the taped mode does not differentiate geometry yet (use --method prb or rb)");
   check_interior_support(scene);
   const int camera = rq.pass.camera;
   const CameraPose* cam_pose =
@@ -152,6 +150,7 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
   po.meshes = meshes;
   po.camera_moves = camera_moves;
   po.edge_samples = rq.edge_samples;
+  po.taped = rq.method == GradientMethod::Taped;  // the oracle's pull-back, on the same paths
   GeometryGradient g = meshes.empty() ? GeometryGradient{} : primary_boundary_gradient(scene, adjoint, bo);
   GeometryGradient paths = path_geometry_gradient(scene, adjoint, po);
   if (meshes.empty()) {
@@ -220,11 +219,7 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
 }
 
 GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
-  if (scene.params.wants_geometry()) {  // refuse before any work
-    if (rq.method == GradientMethod::Taped)
-      throw InputError(scene.source + ": the taped mode does not differentiate geometry yet (use --method prb or rb)");
-    check_interior_support(scene);
-  }
+  if (scene.params.wants_geometry()) check_interior_support(scene);  // refuse before any work
   GradientResult result = local_gradient(scene, rq);
   if (scene.params.wants_geometry() && dist::is_root()) {
     const Image adjoint =

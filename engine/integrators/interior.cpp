@@ -10,6 +10,7 @@
 
 #include "engine/core/dual.h"
 #include "engine/core/errors.h"
+#include "engine/core/tape.h"
 #include "engine/integrators/edges.h"
 #include "engine/integrators/path.h"
 
@@ -251,6 +252,137 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
   }
 }
 
+// The taped oracle of backpropagate: the same path as one computation recorded on a tape
+// (engine/core/tape.h: reverse-mode AD in float) — corners, vertex normals, the camera's origin and
+// rotation and the emitters' log-areas as leaves, each hit moving_hit<Var> of a ray leaving the
+// previous hit, each factor the same log-factor template, the boundary term's ∂F/∂x as a linear
+// term — then one reverse sweep. No closed-form pull-back and no duals: what backpropagate derives
+// by hand, this gets from the chain rule, so the two must agree to float precision.
+struct TapedLeaf {
+  int kind = 0;  // 0 vertex position, 1 vertex normal, 2 camera origin, 3 camera rotation, 4 emitter log-area
+  int slot = 0;
+  uint32_t index = 0;
+  int component = 0;
+};
+
+void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path,
+                         const std::vector<MovingHit<double>>& hits, const std::vector<Vec3d>& boundary_x,
+                         const Vec3f& radiance, const Vec3d& a, const std::vector<int>& slot, bool interior,
+                         bool camera_moves, Tape& tape, std::vector<TapedLeaf>& leaves, std::vector<float>& adjoint,
+                         Accumulator& acc) {
+  const double select = double(scene.emitter_select_probability());
+  tape.count = 0;
+  leaves.clear();
+  current_tape = &tape;
+  auto leaf = [&](double value, TapedLeaf l) {
+    leaves.push_back(l);
+    return Var(float(value), tape.push(Tape::kLeaf, 1.f, uint32_t(leaves.size() - 1), 0.f));
+  };
+  auto vec = [&](const Vec3d& v, bool active, int kind, int s, uint32_t index) {
+    if (!active) return Vec3<Var>(v);
+    return Vec3<Var>{leaf(v.x, {kind, s, index, 0}), leaf(v.y, {kind, s, index, 1}), leaf(v.z, {kind, s, index, 2})};
+  };
+  struct TriangleVars {
+    Vec3<Var> p[3], n[3];
+    bool smooth = false;
+  };
+  auto triangle = [&](int mesh, int tri) {
+    const Corners c = corners(scene.meshes[size_t(mesh)], tri);
+    const int s = slot[size_t(mesh)];
+    TriangleVars t;
+    t.smooth = c.smooth;
+    for (int i = 0; i < 3; ++i) {
+      t.p[i] = vec(c.p[i], s >= 0, 0, s, c.index[i]);
+      if (c.smooth) t.n[i] = vec(c.n[i], s >= 0, 1, s, c.index[i]);
+    }
+    return t;
+  };
+  std::vector<Var> log_area(scene.area_emitters.size());
+  std::vector<bool> have_log_area(scene.area_emitters.size(), false);
+  auto area_of = [&](int e) {
+    if (!have_log_area[size_t(e)]) {
+      const AreaEmitter& emitter = scene.area_emitters[size_t(e)];
+      log_area[size_t(e)] = slot[size_t(emitter.mesh)] >= 0 ? leaf(std::log(double(emitter.total_area)), {4, e, 0, 0})
+                                                            : Var(float(std::log(double(emitter.total_area))));
+      have_log_area[size_t(e)] = true;
+    }
+    return log_area[size_t(e)];
+  };
+  const Vec3<Var> camera_omega = vec(Vec3d(0.0), camera_moves, 3, 0, 0);
+  Var total(0.f);
+  std::vector<MovingHit<Var>> x(path.size());
+  for (size_t k = 0; k < path.size(); ++k) {
+    const PathVertex& v = path[k];
+    const Vec3d d = v.direction;
+    Vec3<Var> origin, direction(d);
+    if (k == 0) {
+      origin = vec(v.origin, camera_moves, 2, 0, 0);
+      direction = direction + cross(camera_omega, direction);  // the camera turns by ω: d + ω × d
+    } else {
+      origin = x[k - 1].x + Vec3<Var>(v.origin - hits[k - 1].x);  // offset along the normal: a constant
+    }
+    const TriangleVars t = triangle(v.mesh, v.triangle);
+    x[k] = moving_hit(origin, direction, t.p[0], t.p[1], t.p[2], t.smooth ? t.n : nullptr);
+    const MovingHit<Var>& h = x[k];
+    if (interior && v.scattered) {
+      const double g = inner(a, radiance - v.radiance_so_far);
+      if (g != 0.0) total = total + log_continuation(h.m, v.sign, v.next_direction) * float(g);
+    }
+    if (interior && v.escape) {
+      const double g = inner(a, v.escape_contribution);
+      const double p_light = select * double(scene.environment.pdf(Vec3f(v.next_direction)));
+      if (g != 0.0) total = total + log_environment_hit_weight(h.m, v.sign, v.next_direction, p_light) * float(g);
+    }
+    if (interior && v.light == 2) {
+      const double g = inner(a, v.light_contribution);
+      const double p_light = select * double(scene.environment.pdf(Vec3f(v.light_direction)));
+      if (g != 0.0) total = total + log_environment_sample(h.m, v.sign, v.light_direction, p_light) * float(g);
+    } else if (interior && v.light == 1) {
+      const double g = inner(a, v.light_contribution);
+      if (g != 0.0) {
+        const TriangleVars q = triangle(scene.area_emitters[size_t(v.light_emitter)].mesh, v.light_triangle);
+        total =
+            total + log_light_sample(h.x, h.m, v.sign, q.p, v.light_b1, v.light_b2, area_of(v.light_emitter), select) *
+                        float(g);
+      }
+    }
+    if (interior && v.emitter_hit && k > 0) {
+      const double g = inner(a, v.emitter_hit_contribution);
+      if (g != 0.0) {
+        const int e = scene.meshes[size_t(v.mesh)].emitter;
+        total = total + log_emitter_hit_weight(x[k - 1].m, path[k - 1].sign, d, origin, h.x, t.p, area_of(e), select) *
+                            float(g);
+      }
+    }
+    const Vec3d& b = boundary_x[k];
+    if (b.x != 0 || b.y != 0 || b.z != 0) total = total + dot(h.x, Vec3<Var>(b));
+  }
+  current_tape = nullptr;
+  if (!total.active()) return;
+  adjoint.assign(tape.size(), 0.f);
+  adjoint[total.index] = 1.f;
+  reverse_sweep(tape, adjoint, [&](uint32_t id, float g) {
+    const TapedLeaf& l = leaves[id];
+    switch (l.kind) {
+      case 0:
+        acc.vertices[size_t(l.slot)][l.index][l.component] += double(g);
+        break;
+      case 1:
+        acc.normals[size_t(l.slot)][l.index][l.component] += double(g);
+        break;
+      case 2:
+        acc.camera_origin[l.component] += double(g);
+        break;
+      case 3:
+        acc.camera_rotate[l.component] += double(g);
+        break;
+      default:
+        acc.log_area[size_t(l.slot)] += double(g);
+        break;
+    }
+  });
+}
+
 // Secondary visibility at path vertex k (x = its point): one point p on an edge that is a
 // discontinuity seen from x (edge_sample below picks the edge), ω = (p − x)/r, n the unit normal of
 // the plane through x and the edge, and one path on each side (±side_angle along n) from x. With the parameterization
@@ -445,6 +577,9 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
     std::vector<Vec3d> boundary_x;
     std::vector<double> cdf;
     std::vector<uint32_t> index;
+    Tape tape;  // options.taped: one path's tape at a time, its chunks reused
+    std::vector<TapedLeaf> leaves;
+    std::vector<float> tape_adjoint;
     VertexRecorder recorder;
     recorder.scene = &scene;
     recorder.path = &path;
@@ -478,7 +613,12 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
               edge_sample(es, v, hits[k], x_moves, a, pixel, uint64_t(s) << 8 | uint64_t(std::min(vertex, 255)), vertex,
                           cdf, index, acc, boundary_x[k]);
           }
-          backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, options.camera_moves, acc);
+          if (options.taped)
+            backpropagate_taped(scene, path, hits, boundary_x, radiance, a, slot, options.interior,
+                                options.camera_moves, tape, leaves, tape_adjoint, acc);
+          else
+            backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, options.camera_moves,
+                          acc);
         }
       }
   });

@@ -43,6 +43,10 @@ struct PathGeometryOptions {
   float side_angle = 1e-5f;    // radians, the offset of the boundary term's side paths
   int edge_samples = 1;        // edge samples per vertex (each costs a shadow ray, and two paths if visible)
   bool edge_hierarchy = true;  // sample edges through edges::EdgeTree (false: a scan of every edge per vertex)
+  // The oracle: each path's derivative from a tape of the whole path (reverse-mode AD of the same
+  // log-factor templates and of the hits as functions of the previous hit) instead of the
+  // closed-form pull-back; the same paths and edge samples, so the same gradient to float precision.
+  bool taped = false;
 };
 
 // Interior and secondary-visibility terms of dF/d(vertex positions, vertex normals, camera origin

@@ -830,3 +830,71 @@ TEST_CASE("a one-sided surface seen from its back reflects nothing, and has no d
     CHECK(norm == 0.0);
   }
 }
+
+TEST_CASE("the taped oracle and the closed-form pull-back give the same path derivatives",
+          "[boundary][interior][taped]") {
+  // Same paths, same edge samples: the taped mode differs only in how each path's derivative is
+  // pulled back (a tape of the whole path in float, reverse-mode AD of the same log-factor templates
+  // and of each hit as a function of the previous one, vs moving_hit_adjoint and duals in double).
+  // The Cornell box (depth 3, interreflections, an emitter moving), the smooth dome (vertex
+  // normals), and a moving camera.
+  struct Case {
+    const char* what;
+    nlohmann::json scene;
+    std::vector<std::string> meshes;
+    bool camera_moves;
+  };
+  const Image ones = constant_adjoint(1.f);
+  for (const Case& c : {Case{"cornell", cornell_scene(3), {"cube", "sphere", "light"}, false},
+                        Case{"dome", dome_scene(), {"dome", "light"}, false},
+                        Case{"cornell, camera moving", cornell_scene(3), {}, true}}) {
+    auto scene = build(c.scene);
+    PathGeometryOptions po;
+    po.spp = 2;
+    po.seed = 4242;
+    po.camera_moves = c.camera_moves;
+    for (const std::string& m : c.meshes) po.meshes.push_back(mesh_index(*scene, m));
+    if (c.camera_moves)
+      for (size_t i = 0; i < scene->meshes.size(); ++i) po.meshes.push_back(int(i));
+    for (bool boundary : {false, true}) {
+      po.boundary = boundary;
+      po.taped = false;
+      const GeometryGradient closed = path_geometry_gradient(*scene, ones, po);
+      po.taped = true;
+      const GeometryGradient taped = path_geometry_gradient(*scene, ones, po);
+      double largest = 0, worst = 0;
+      size_t nonzero = 0;
+      auto compare = [&](const Vec3d& x, const Vec3d& y) {
+        largest = std::max({largest, std::abs(x.x), std::abs(x.y), std::abs(x.z)});
+        worst = std::max({worst, std::abs(x.x - y.x), std::abs(x.y - y.y), std::abs(x.z - y.z)});
+        nonzero += x.x != 0 || x.y != 0 || x.z != 0;
+      };
+      REQUIRE(closed.vertices.size() == taped.vertices.size());
+      for (size_t k = 0; k < closed.vertices.size(); ++k) {
+        for (size_t i = 0; i < closed.vertices[k].size(); ++i) compare(closed.vertices[k][i], taped.vertices[k][i]);
+        for (size_t i = 0; i < closed.normals[k].size(); ++i) compare(closed.normals[k][i], taped.normals[k][i]);
+      }
+      if (c.camera_moves) {  // the camera fields are defined (complete) only then
+        compare(closed.camera_origin, taped.camera_origin);
+        compare(closed.camera_rotate, taped.camera_rotate);
+      }
+      INFO(c.what << (boundary ? ", with the secondary term" : ", interior only") << ": " << nonzero
+                  << " non-zero vectors, largest component " << largest << ", largest difference " << worst);
+      CHECK(nonzero > 10);
+      CHECK(largest > 0);
+      CHECK(worst <= 1e-4 * largest);
+      if (boundary) {
+        // The comparison has teeth: the taped oracle without the interior factors (the boundary
+        // term's share only) is far from the full closed-form derivative.
+        po.interior = false;
+        const GeometryGradient partial = path_geometry_gradient(*scene, ones, po);
+        po.interior = true;
+        double off = 0;
+        for (size_t k = 0; k < closed.vertices.size(); ++k)
+          for (size_t i = 0; i < closed.vertices[k].size(); ++i)
+            off = std::max(off, length(closed.vertices[k][i] - partial.vertices[k][i]));
+        CHECK(off > 1e-2 * largest);
+      }
+    }
+  }
+}
