@@ -39,6 +39,7 @@ struct PathVertex {
   Vec3f escape_contribution;
   Vec3f beta{1.f};  // throughput arriving here
   Vec3f albedo, p, geometric_normal;
+  Vec2f uv;
 };
 
 // Records a path's vertices while the path loop computes its radiance.
@@ -68,6 +69,7 @@ struct VertexRecorder : NoObserver {
     v.albedo = material.at<float>(scene->params, sp.uv, sp.color).albedo;
     v.p = sp.p;
     v.geometric_normal = sp.geometric_normal;
+    v.uv = sp.uv;
   }
   void emission(const EmissionRef& ref, const Vec3f&, const Vec3f& contribution) {
     if (current <= 1) return;  // seen from the camera: weight 1
@@ -150,6 +152,47 @@ void add_to_emitter(Accumulator& acc, const std::vector<int>& slot, int mesh, in
   acc.log_area[size_t(emitter)] += l.d[size_t(N - 1)] * g;
 }
 
+// A textured diffuse albedo at a vertex whose uv slides: the scalar ∂F/∂u, ∂F/∂v of the log of
+// the albedo (per channel, weighted by what passed through it: the light sample there and
+// everything after the continuation), and ∂uv/∂(b1, b2) from the triangle's uvs (uv = (b1, b2)
+// without them). Returns false where there is nothing to pull back.
+struct AlbedoSlope {
+  double gu = 0, gv = 0;                    // ∂F/∂u, ∂F/∂v
+  double uv1[2] = {0, 0}, uv2[2] = {0, 0};  // ∂uv/∂b1, ∂uv/∂b2
+  double channel[3] = {0, 0, 0};            // per channel: the weight of log albedo_c, and its slopes
+  Vec3d du{0.0}, dv{0.0};
+};
+bool albedo_slope(const Scene& scene, const PathVertex& v, const Vec3f& radiance, const Vec3d& a, AlbedoSlope& out) {
+  const Mesh& mesh = scene.meshes[size_t(v.mesh)];
+  const Material& material = scene.materials[size_t(mesh.material)];
+  if (!material.albedo.bitmap) return false;
+  Vec3f passed = v.light != 0 ? v.light_contribution : Vec3f(0.f);
+  if (v.scattered) passed = passed + (radiance - v.radiance_so_far);
+  Vec3f du, dv;
+  material.albedo.uv_gradient(scene.params, v.uv, du, dv);
+  bool any = false;
+  for (int c = 0; c < 3; ++c) {
+    if (!(v.albedo[c] > 0.f)) continue;
+    const double w = a[c] * double(passed[c]) / double(v.albedo[c]);
+    out.channel[c] = a[c] * double(passed[c]);
+    out.gu += w * double(du[c]);
+    out.gv += w * double(dv[c]);
+    any = any || w != 0;
+  }
+  out.du = Vec3d(du);
+  out.dv = Vec3d(dv);
+  const uint32_t* i = &mesh.indices[3 * size_t(v.triangle)];
+  if (mesh.uvs.empty()) {
+    out.uv1[0] = 1.0, out.uv2[1] = 1.0;
+  } else {
+    out.uv1[0] = double(mesh.uvs[i[1]].x) - double(mesh.uvs[i[0]].x);
+    out.uv1[1] = double(mesh.uvs[i[1]].y) - double(mesh.uvs[i[0]].y);
+    out.uv2[0] = double(mesh.uvs[i[2]].x) - double(mesh.uvs[i[0]].x);
+    out.uv2[1] = double(mesh.uvs[i[2]].y) - double(mesh.uvs[i[0]].y);
+  }
+  return any;
+}
+
 // Pulls one path's derivatives back from its last vertex to the camera.
 void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
                    const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
@@ -174,6 +217,12 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
     carry_m_prev = Vec3d(0.0);
 
     const bool moves = k >= first_moving;
+    double adj_b[2] = {0, 0};  // the barycentrics, through a textured albedo's uv
+    AlbedoSlope slope;
+    if (interior && moves && albedo_slope(scene, v, radiance, a, slope)) {
+      adj_b[0] = slope.gu * slope.uv1[0] + slope.gv * slope.uv1[1];
+      adj_b[1] = slope.gu * slope.uv2[0] + slope.gv * slope.uv2[1];
+    }
     if (interior && moves && v.scattered) {
       const double g = inner(a, radiance - v.radiance_so_far);
       if (g != 0.0) {
@@ -230,11 +279,12 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
 
     // The hit itself: x and m as functions of the ray's origin and direction, the triangle's
     // corners and vertex normals (nothing to pull back where none of them moves).
-    if (!moves || (adj_x.x == 0 && adj_x.y == 0 && adj_x.z == 0 && adj_m.x == 0 && adj_m.y == 0 && adj_m.z == 0)) {
+    if (!moves || (adj_x.x == 0 && adj_x.y == 0 && adj_x.z == 0 && adj_m.x == 0 && adj_m.y == 0 && adj_m.z == 0 &&
+                   adj_b[0] == 0 && adj_b[1] == 0)) {
       carry_x = adj_origin;
       continue;
     }
-    const HitAdjoint r = moving_hit_adjoint(v.origin, v.direction, c.p, c.smooth ? c.n : nullptr, adj_x, adj_m);
+    const HitAdjoint r = moving_hit_adjoint(v.origin, v.direction, c.p, c.smooth ? c.n : nullptr, adj_x, adj_m, adj_b);
     adj_origin += r.origin;
     if (k == 0) {
       acc.camera_origin += adj_origin;
@@ -352,6 +402,17 @@ void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path
         const int e = scene.meshes[size_t(v.mesh)].emitter;
         total = total + log_emitter_hit_weight(x[k - 1].m, path[k - 1].sign, d, origin, h.x, t.p, area_of(e), select) *
                             float(g);
+      }
+    }
+    AlbedoSlope slope;
+    if (interior && albedo_slope(scene, v, radiance, a, slope)) {
+      // log albedo_c(uv(b1, b2)), its slopes in u and v recorded as the texture's partials.
+      const Var u = h.b1 * float(slope.uv1[0]) + h.b2 * float(slope.uv2[0]);
+      const Var w = h.b1 * float(slope.uv1[1]) + h.b2 * float(slope.uv2[1]);
+      for (int ch = 0; ch < 3; ++ch) {
+        if (slope.channel[ch] == 0) continue;
+        const Var albedo = record(v.albedo[ch], u, float(slope.du[ch]), w, float(slope.dv[ch]));
+        total = total + log(albedo) * float(slope.channel[ch]);
       }
     }
     const Vec3d& b = boundary_x[k];
@@ -664,8 +725,6 @@ void check_interior_support(const Scene& scene) {
     if (material.is_null) throw InputError(where + "null surfaces are not supported yet (shape '" + m.name + "')");
     if (material.type != BsdfType::Diffuse)
       throw InputError(where + "only diffuse surfaces are supported yet (shape '" + m.name + "')");
-    if (material.albedo.bitmap)
-      throw InputError(where + "bitmap textures on surfaces are not supported yet (shape '" + m.name + "')");
     if (!m.colors.empty()) throw InputError(where + "vertex colours are not supported yet (shape '" + m.name + "')");
   }
   for (const AreaEmitter& e : scene.area_emitters)

@@ -77,6 +77,7 @@ namespace interior_detail {
 template <class S>
 struct MovingHit {
   Vec3<S> x, m;
+  S b1, b2;  // barycentrics of corners 1 and 2 (the uv follows them)
 };
 template <class S>
 MovingHit<S> moving_hit(const Vec3<S>& o, const Vec3<S>& d, const Vec3<S>& p0, const Vec3<S>& p1, const Vec3<S>& p2,
@@ -92,12 +93,15 @@ MovingHit<S> moving_hit(const Vec3<S>& o, const Vec3<S>& d, const Vec3<S>& p0, c
   MovingHit<S> h;
   h.x = o + d * t;
   h.m = n ? n[0] * (S(1.0) - b1 - b2) + n[1] * b1 + n[2] * b2 : cross(e1, e2);
+  h.b1 = b1;
+  h.b2 = b2;
   return h;
 }
 
 inline constexpr double kInvPiD = 0.31830988618379067;
 
-// Reverse-mode derivative of moving_hit: given ∂F/∂x and ∂F/∂m, ∂F with respect to the ray's
+// Reverse-mode derivative of moving_hit: given ∂F/∂x, ∂F/∂m and (`gb`, optional) ∂F/∂(b1, b2)
+// beyond what flows through m, ∂F with respect to the ray's
 // origin and direction, the corners and the vertex normals (`n` as in moving_hit; `grad_n` is left
 // untouched without it). With n = e1 × e2, t = n·(p0 − o)/(n·d), x − p0 = b1 e1 + b2 e2 and the dual
 // basis g1 = e2 × n / |n|², g2 = n × e1 / |n|²: γ = β1 g1 + β2 g2 (β the barycentrics' adjoints),
@@ -107,7 +111,7 @@ struct HitAdjoint {
   Vec3d origin, direction, p[3], n[3];
 };
 inline HitAdjoint moving_hit_adjoint(const Vec3d& o, const Vec3d& d, const Vec3d* p, const Vec3d* n, const Vec3d& gx,
-                                     const Vec3d& gm) {
+                                     const Vec3d& gm, const double* gb = nullptr) {
   const Vec3d e1 = p[1] - p[0], e2 = p[2] - p[0];
   const Vec3d normal = cross(e1, e2);
   const double nn = dot(normal, normal), nd = dot(normal, d);
@@ -127,6 +131,7 @@ inline HitAdjoint moving_hit_adjoint(const Vec3d& o, const Vec3d& d, const Vec3d
   } else {
     gn = gm;  // flat: m = e1 × e2
   }
+  if (gb) gamma += g1 * gb[0] + g2 * gb[1];
   const Vec3d A = gx + gamma;
   const double s = dot(A, d) / nd;
   r.origin = A - normal * s;

@@ -65,6 +65,24 @@ Spectrum<T> bitmap_eval(const Param& p, Wrap wrap, Vec2f uv) {
   return {out[0], out[1], out[2]};
 }
 
+// ∂eval/∂u and ∂eval/∂v at uv (RGB; one channel broadcast): the bilinear blend's slope within its
+// cell, ∂x/∂u = W and ∂y/∂v = H. Where a clamped lookup repeats the border texel the slope is zero.
+// The blend is continuous but its slope jumps at texel centres: derivative of the lookup, not of
+// any smoother reconstruction. Used by the geometry gradients (a moving surface slides its uv).
+inline void bitmap_uv_gradient(const Param& p, Wrap wrap, Vec2f uv, Vec3f& d_du, Vec3f& d_dv) {
+  const int w = p.width(), h = p.height(), c = p.channels();
+  const BilinearFootprint f = bilinear_footprint(w, h, wrap, uv);
+  const float x = uv.x * float(w) - 0.5f, y = uv.y * float(h) - 0.5f;
+  const float tx = x - std::floor(x), ty = y - std::floor(y);
+  auto texel = [&](int r, int q) {
+    const size_t base = (size_t(f.rows[r]) * size_t(w) + size_t(f.cols[q])) * size_t(c);
+    return c == 1 ? Vec3f(p.value[base]) : Vec3f(p.value[base], p.value[base + 1], p.value[base + 2]);
+  };
+  const Vec3f t00 = texel(0, 0), t01 = texel(0, 1), t10 = texel(1, 0), t11 = texel(1, 1);
+  d_du = ((t01 - t00) * (1 - ty) + (t11 - t10) * ty) * float(w);
+  d_dv = ((t10 - t00) * (1 - tx) + (t11 - t01) * tx) * float(h);
+}
+
 inline void bitmap_backprop(const Param& p, int handle, Wrap wrap, Vec2f uv, const Vec3f& adjoint,
                             GradientAccumulator& grads, bool first_channel_only = false) {
   const int w = p.width(), h = p.height(), c = p.channels();

@@ -29,6 +29,11 @@ struct TextureSlot {
     if (!bitmap) return ParamLoad<T>::load(p, 0);
     return bitmap_eval<T>(p, wrap, uv).x;
   }
+  // ∂eval/∂u, ∂eval/∂v (zero for a constant).
+  void uv_gradient(const ParamStore& store, Vec2f uv, Vec3f& d_du, Vec3f& d_dv) const {
+    d_du = d_dv = Vec3f(0.f);
+    if (bitmap) bitmap_uv_gradient(store[param], wrap, uv, d_du, d_dv);
+  }
   void backprop(const ParamStore& store, Vec2f uv, const Vec3f& adjoint, GradientAccumulator& grads) const {
     if (!grads.wants(param)) return;
     const Param& p = store[param];

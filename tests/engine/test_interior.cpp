@@ -137,7 +137,8 @@ TEST_CASE("the power heuristic's derivative: the two strategies' weights sum to 
   CHECK(std::abs(sum.d[1]) < 1e-12);
 }
 
-TEST_CASE("moving_hit_adjoint: the reverse-mode derivative equals the dual-number one", "[interior]") {
+TEST_CASE("moving_hit_adjoint: the reverse-mode derivative equals the dual-number one, barycentrics included",
+          "[interior]") {
   std::mt19937 rng(5);
   std::uniform_real_distribution<double> u(-1, 1);
   const std::array<double, 24> centre = {0.1, 2, 0.2, -0.05, -1, 0.02, -1,   0, -1,  1, 0, -1,
@@ -146,6 +147,7 @@ TEST_CASE("moving_hit_adjoint: the reverse-mode derivative equals the dual-numbe
     for (bool smooth : {true, false}) {
       const std::array<double, 24> x = random_point<24>(rng, centre, 0.05);
       const Vec3d gx(u(rng), u(rng), u(rng)), gm(u(rng), u(rng), u(rng));
+      const double gb[2] = {u(rng), u(rng)};  // the barycentrics' own adjoints (a textured uv)
       using D = Dual<double, 24>;
       std::array<D, 24> v;
       for (int i = 0; i < 24; ++i) v[size_t(i)] = D::variable(x[size_t(i)], i);
@@ -153,11 +155,12 @@ TEST_CASE("moving_hit_adjoint: the reverse-mode derivative equals the dual-numbe
       const MovingHit<D> h = moving_hit(vec(v, 0), vec(v, 3), vec(v, 6), vec(v, 9), vec(v, 12), smooth ? nd : nullptr);
       auto plain = [&](int first) { return Vec3d(x[size_t(first)], x[size_t(first + 1)], x[size_t(first + 2)]); };
       const Vec3d p[3] = {plain(6), plain(9), plain(12)}, n[3] = {plain(15), plain(18), plain(21)};
-      const HitAdjoint r = moving_hit_adjoint(plain(0), plain(3), p, smooth ? n : nullptr, gx, gm);
+      const HitAdjoint r = moving_hit_adjoint(plain(0), plain(3), p, smooth ? n : nullptr, gx, gm, gb);
       const Vec3d got[8] = {r.origin, r.direction, r.p[0], r.p[1], r.p[2], r.n[0], r.n[1], r.n[2]};
       for (int i = 0; i < 24; ++i) {
         double want = 0;
         for (int c = 0; c < 3; ++c) want += gx[c] * h.x[c].d[size_t(i)] + gm[c] * h.m[c].d[size_t(i)];
+        want += gb[0] * h.b1.d[size_t(i)] + gb[1] * h.b2.d[size_t(i)];
         const double have = got[i / 3][i % 3];
         INFO((smooth ? "smooth" : "flat") << ", input " << i << ": reverse " << have << ", dual " << want);
         CHECK(std::abs(have - want) <= 1e-9 * (1 + std::abs(want)));

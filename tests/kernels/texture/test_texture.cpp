@@ -192,3 +192,40 @@ TEST_CASE("texture backprop writes only parameters that require gradients", "[te
   for (float x : store[wanted].grad) total += double(x);
   CHECK(total == Approx(3.0).epsilon(1e-6));  // bilinear weights sum to 1 per channel
 }
+
+TEST_CASE("bitmap uv gradient matches central differences of eval in u and v", "[texture][uv]") {
+  // The lookup is piecewise bilinear in (u, v): central differences with a step inside one cell are
+  // exact up to rounding. Points away from texel centres (where the slope jumps) and cell borders.
+  TestRng rng(31);
+  for (Wrap wrap : {Wrap::Repeat, Wrap::Clamp})
+    for (int channels : {3, 1}) {
+      ParamStore store;
+      const int h = store.add(random_param("t.bitmap", {5, 7, channels}, rng));
+      TextureSlot slot{h, true, wrap};
+      for (int i = 0; i < 40; ++i) {
+        // Cell coordinates with fractions in [0.2, 0.8]: a step of 1e-3 cells stays in the cell.
+        const double cx = std::floor(rng.uniform(-2, 9)) + rng.uniform(0.2, 0.8);
+        const double cy = std::floor(rng.uniform(-2, 7)) + rng.uniform(0.2, 0.8);
+        const Vec2f uv{float((cx + 0.5) / 7), float((cy + 0.5) / 5)};
+        Vec3f du, dv;
+        slot.uv_gradient(store, uv, du, dv);
+        const double eu = 1e-3 / 7, ev = 1e-3 / 5;
+        const Vec3d fu = (Vec3d(slot.eval<double>(store, {uv.x + float(eu), uv.y})) -
+                          Vec3d(slot.eval<double>(store, {uv.x - float(eu), uv.y}))) /
+                         (2 * eu);
+        const Vec3d fv = (Vec3d(slot.eval<double>(store, {uv.x, uv.y + float(ev)})) -
+                          Vec3d(slot.eval<double>(store, {uv.x, uv.y - float(ev)}))) /
+                         (2 * ev);
+        INFO("wrap " << int(wrap) << " channels " << channels << " uv " << uv.x << "," << uv.y);
+        for (int c = 0; c < 3; ++c) {
+          CHECK(du[c] == Approx(fu[c]).epsilon(5e-3).margin(5e-3));
+          CHECK(dv[c] == Approx(fv[c]).epsilon(5e-3).margin(5e-3));
+        }
+      }
+      // A constant slot has no slope.
+      TextureSlot constant{store.add(random_param("t.c", {3}, rng)), false, wrap};
+      Vec3f du, dv;
+      constant.uv_gradient(store, {0.3f, 0.4f}, du, dv);
+      CHECK((du.x == 0.f && du.y == 0.f && du.z == 0.f && dv.x == 0.f && dv.y == 0.f && dv.z == 0.f));
+    }
+}
