@@ -65,7 +65,7 @@ double one_way(const std::vector<float>& from, const std::vector<float>& to, con
 double surface_distance(const std::vector<float>& a, const std::vector<float>& b,
                         const std::vector<uint32_t>& indices) {
   if (a.size() != b.size() || a.empty() || indices.empty()) return -1;
-  if (double(a.size() / 3) * double(indices.size() / 3) > 4e9) return -1;
+  if (double(a.size() / 3) * double(indices.size() / 3) > 5e8) return -1;
   for (uint32_t i : indices)
     if (3 * size_t(i) + 2 >= a.size()) return -1;
   return 0.5 * (one_way(a, b, indices) + one_way(b, a, indices));

@@ -10,8 +10,8 @@ namespace bl {
 // to a's surface). `a` and `b` are [N, 3] positions of the same triangles `indices` (the surfaces
 // may differ in any way; only the triangles' index lists are shared). Unlike the vertex error
 // (RMSE of a − b), it does not count vertices sliding along the surface, which images cannot see.
-// Exact closest points, brute force over triangles (parallel): returns −1 when N × triangles
-// exceeds 4·10⁹ rather than running for minutes.
+// Exact closest points, brute force over triangles (parallel; 2562 vertices × 5120 triangles take
+// ~0.2 s): returns −1 when N × triangles exceeds 5·10⁸ (~20 s) rather than running for minutes.
 double surface_distance(const std::vector<float>& a, const std::vector<float>& b, const std::vector<uint32_t>& indices);
 
 }  // namespace bl

@@ -138,6 +138,13 @@ void Scene::add_geometry_params() {
     for (int h : {pose.origin, pose.rotate}) append(pose.applied, h >= 0 ? &params[h] : nullptr);
 }
 
+namespace {
+// Whether a group's rest normal follows its positions: both area-weighted normals exist.
+bool group_normal_defined(const Vec3d& a, const Vec3d& m) {
+  return std::isfinite(a.x + a.y + a.z) && dot(m, m) > 0 && std::isfinite(m.x + m.y + m.z);
+}
+}  // namespace
+
 std::vector<Vec3d> group_area_normals(const MeshPose& pose, const Mesh& mesh, const std::vector<float>& p0) {
   uint32_t groups = 0;
   for (uint32_t g : pose.normal_group) groups = std::max(groups, g + 1);
@@ -163,6 +170,7 @@ void add_rest_normal_gradient(const MeshPose& pose, const Mesh& mesh, const std:
     if (g.x == 0 && g.y == 0 && g.z == 0) continue;
     const uint32_t k = pose.normal_group[v];
     const Vec3d& m = groups[k];
+    if (!group_normal_defined(pose.loaded_group_normal[k], m)) continue;  // the loaded normal, held
     const Vec3<D> n = rest_normal_from(Vec3<D>{D::variable(m.x, 0), D::variable(m.y, 1), D::variable(m.z, 2)},
                                        pose.loaded_group_normal[k], Vec3d(pose.loaded_normals[v]));
     for (int c = 0; c < 3; ++c) g_m[k][c] += g.x * n.x.d[size_t(c)] + g.y * n.y.d[size_t(c)] + g.z * n.z.d[size_t(c)];
@@ -207,9 +215,10 @@ bool Scene::update_geometry() {
       for (size_t v = 0; v < m.vertex_count(); ++v) {
         const uint32_t g = pose.normal_group[v];
         const Vec3d& a = pose.loaded_group_normal[g];
-        // Exactly the loaded normal while the group's normal is exactly as loaded.
+        // Exactly the loaded normal while the group's normal is exactly as loaded, and where it is
+        // undefined (a vertex no triangle uses, or whose triangles' areas cancel).
         const Vec3d b = normalize(groups[g]);
-        pose.rest_normals[v] = b.x == a.x && b.y == a.y && b.z == a.z
+        pose.rest_normals[v] = (b.x == a.x && b.y == a.y && b.z == a.z) || !group_normal_defined(a, groups[g])
                                    ? pose.loaded_normals[v]
                                    : Vec3f(rest_normal_from(groups[g], a, Vec3d(pose.loaded_normals[v])));
       }

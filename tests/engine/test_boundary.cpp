@@ -697,28 +697,7 @@ nlohmann::json dome_scene() {
   j["cameras"][0]["target"] = {0, 0, 0};
   j["cameras"][0]["fov"] = 30;
   j["materials"]["white"] = {{"type", "diffuse"}, {"albedo", {0.7, 0.7, 0.7}}};
-  nlohmann::json positions = nlohmann::json::array(), normals = nlohmann::json::array(),
-                 indices = nlohmann::json::array();
-  const int n = 12;
-  for (int i = 0; i <= n; ++i)
-    for (int k = 0; k <= n; ++k) {
-      const double x = -1.5 + 3.0 * i / n, y = -1.5 + 3.0 * k / n;
-      positions.push_back({x, y, -0.2 * (x * x + y * y)});
-      const Vec3d normal = normalize(Vec3d(0.4 * x, 0.4 * y, 1));
-      normals.push_back({normal.x, normal.y, normal.z});
-    }
-  for (int i = 0; i < n; ++i)
-    for (int k = 0; k < n; ++k) {
-      const int a = i * (n + 1) + k, b = a + n + 1;
-      indices.push_back({a, b, b + 1});
-      indices.push_back({a, b + 1, a + 1});
-    }
-  j["shapes"].push_back({{"name", "dome"},
-                         {"type", "mesh"},
-                         {"material", "white"},
-                         {"positions", positions},
-                         {"normals", normals},
-                         {"indices", indices}});
+  j["shapes"].push_back(test::dome_shape("white"));
   j["shapes"].push_back(emitter_shape(
       "light", "rectangle",
       {{"scale", 0.4}, {"rotate", {{"axis", {1, 0, 0}}, {"angle", 50}}}, {"translate", {0.3, 1.6, 1.6}}}, {6, 6, 6}));

@@ -227,41 +227,7 @@ nlohmann::json dome_scene(bool area_weighted = false) {
                   "black": {"type": "diffuse", "albedo": [0, 0, 0]}},
     "shapes": [{"name": "light", "type": "rectangle", "material": "black", "emitter": {"radiance": [6, 6, 6]},
                 "transform": {"scale": 0.4, "rotate": {"axis": [1, 0, 0], "angle": 50}, "translate": [0.3, 1.6, 1.6]}}]})");
-  nlohmann::json positions = nlohmann::json::array(), normals = nlohmann::json::array(),
-                 indices = nlohmann::json::array();
-  const int n = 12;
-  for (int i = 0; i <= n; ++i)
-    for (int k = 0; k <= n; ++k) {
-      const double x = -1.5 + 3.0 * i / n, y = -1.5 + 3.0 * k / n;
-      positions.push_back({x, y, -0.2 * (x * x + y * y)});
-      const Vec3d normal = normalize(Vec3d(0.4 * x, 0.4 * y, 1));
-      normals.push_back({normal.x, normal.y, normal.z});
-    }
-  for (int i = 0; i < n; ++i)
-    for (int k = 0; k < n; ++k) {
-      const int a = i * (n + 1) + k, b = a + n + 1;
-      indices.push_back({a, b, b + 1});
-      indices.push_back({a, b + 1, a + 1});
-    }
-  if (area_weighted) {
-    std::vector<Vec3d> sum(positions.size(), Vec3d(0.0));
-    auto at = [&](int i) { return Vec3d(positions[i][0], positions[i][1], positions[i][2]); };
-    for (const auto& t : indices) {
-      const int a = t[0], b = t[1], c = t[2];
-      const Vec3d cr = cross(at(b) - at(a), at(c) - at(a));
-      for (int i : {a, b, c}) sum[size_t(i)] += cr;
-    }
-    for (size_t v = 0; v < sum.size(); ++v) {
-      const Vec3d nv = normalize(sum[v]);
-      normals[v] = {nv.x, nv.y, nv.z};
-    }
-  }
-  j["shapes"].push_back({{"name", "dome"},
-                         {"type", "mesh"},
-                         {"material", "white"},
-                         {"positions", positions},
-                         {"normals", normals},
-                         {"indices", indices}});
+  j["shapes"].push_back(test::dome_shape("white", area_weighted));
   return j;
 }
 
@@ -334,6 +300,18 @@ TEST_CASE("smooth meshes: vertex normals follow the positions parameter", "[geom
   for (size_t v = 0; v < loaded.size(); ++v)
     off = std::max(off, length(Vec3d(scene->meshes[size_t(mi)].normals[v]) - Q.apply(Vec3d(loaded[v]))));
   CHECK(off < 0.03);
+
+  // A vertex no triangle uses has no area-weighted normal: it keeps its loaded one, finite.
+  nlohmann::json extra = dome_scene();
+  extra["shapes"][1]["positions"].push_back({0.2, 0.1, 0.5});
+  extra["shapes"][1]["normals"].push_back({0, 0, 1});
+  auto lone = build(extra);
+  const int li = mesh_named(*lone, "dome"), lh = lone->params.find("dome.positions");
+  std::vector<float> shifted = lone->params[lh].value;
+  for (float& x : shifted) x += 0.01f;
+  set_value(*lone, lh, shifted);
+  const Vec3f last = lone->meshes[size_t(li)].normals[169];
+  CHECK((last.x == 0.f && last.y == 0.f && last.z == 1.f));
 }
 
 TEST_CASE("smooth meshes: the positions gradient includes the normals' share", "[geometry]") {

@@ -422,22 +422,18 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
           R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": [{"origin": [0, 1, 0], "fov": 40}], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/views/cameras/0: missing required key 'target'");
   // Large steps: only for a mesh's positions, not with bounds, λ > 0.
-  expect_error(
-      head +
-          R"("parameters": {"floor.albedo": {"lr": 0.1, "large_steps": {"lambda": 10}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-      "/parameters/floor.albedo/large_steps: only for a mesh's positions");
-  expect_error(
-      head +
-          R"("parameters": {"floor.positions": {"lr": 0.1, "bounds": [0, 1], "large_steps": {"lambda": 10}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-      "/parameters/floor.positions/bounds: bounds cannot be combined with large_steps");
-  expect_error(
-      head +
-          R"("parameters": {"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 0}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-      "/parameters/floor.positions/large_steps/lambda");
-  expect_error(
-      head +
-          R"("parameters": {"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 5, "lamda": 1}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
-      "unknown key 'lamda'");
+  auto with_parameters = [&](const std::string& parameters) {
+    return head + R"("parameters": )" + parameters +
+           R"(, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})";
+  };
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "large_steps": {"lambda": 10}}})"),
+               "/parameters/floor.albedo/large_steps: only for a mesh's positions");
+  expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "bounds": [0, 1], "large_steps": {"lambda": 10}}})"),
+               "/parameters/floor.positions/bounds: bounds cannot be combined with large_steps");
+  expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 0}}})"),
+               "/parameters/floor.positions/large_steps/lambda");
+  expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 5, "lamda": 1}}})"),
+               "unknown key 'lamda'");
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
@@ -603,7 +599,8 @@ TEST_CASE("surface distance: zero for sliding vertices, the offset for a moved s
   CHECK(surface_distance(a, std::vector<float>(a.begin(), a.end() - 3), idx) == -1.0);
 }
 
-TEST_CASE("the bundled optimize configs are valid, and the deformation job runs with large steps", "[optimizer][large_steps]") {
+TEST_CASE("the bundled optimize configs are valid, and the deformation job runs with large steps",
+          "[optimizer][large_steps]") {
   const std::string root = BL_SOURCE_DIR;
   for (const auto& entry : fs::directory_iterator(root + "/scenes")) {
     const fs::path config = entry.path() / "optimize.json";

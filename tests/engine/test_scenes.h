@@ -9,6 +9,9 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
+#include "engine/core/math.h"
 #include "engine/io/image_io.h"
 
 namespace bl::test {
@@ -95,6 +98,43 @@ inline std::string write_open_scene(const std::string& dir, const OpenSceneOptio
                      "\n}\n";
   std::ofstream(dir + "/scene.json") << json;
   return dir + "/scene.json";
+}
+
+// A smooth-shaded dome as a JSON mesh shape named "dome": a 12×12 grid over [−1.5, 1.5]² at
+// z = −0.2 (x² + y²) with analytic vertex normals, or with `area_weighted` the grid's
+// area-weighted ones.
+inline nlohmann::json dome_shape(const std::string& material, bool area_weighted = false) {
+  nlohmann::json positions = nlohmann::json::array(), normals = nlohmann::json::array(),
+                 indices = nlohmann::json::array();
+  const int n = 12;
+  for (int i = 0; i <= n; ++i)
+    for (int k = 0; k <= n; ++k) {
+      const double x = -1.5 + 3.0 * i / n, y = -1.5 + 3.0 * k / n;
+      positions.push_back({x, y, -0.2 * (x * x + y * y)});
+      const Vec3d normal = normalize(Vec3d(0.4 * x, 0.4 * y, 1));
+      normals.push_back({normal.x, normal.y, normal.z});
+    }
+  for (int i = 0; i < n; ++i)
+    for (int k = 0; k < n; ++k) {
+      const int a = i * (n + 1) + k, b = a + n + 1;
+      indices.push_back({a, b, b + 1});
+      indices.push_back({a, b + 1, a + 1});
+    }
+  if (area_weighted) {
+    std::vector<Vec3d> sum(positions.size(), Vec3d(0.0));
+    auto at = [&](int i) { return Vec3d(positions[size_t(i)][0], positions[size_t(i)][1], positions[size_t(i)][2]); };
+    for (const auto& t : indices) {
+      const int a = t[0], b = t[1], c = t[2];
+      const Vec3d cr = cross(at(b) - at(a), at(c) - at(a));
+      for (int i : {a, b, c}) sum[size_t(i)] += cr;
+    }
+    for (size_t v = 0; v < sum.size(); ++v) {
+      const Vec3d nv = normalize(sum[v]);
+      normals[v] = {nv.x, nv.y, nv.z};
+    }
+  }
+  return {{"name", "dome"},         {"type", "mesh"},     {"material", material},
+          {"positions", positions}, {"normals", normals}, {"indices", indices}};
 }
 
 }  // namespace bl::test
