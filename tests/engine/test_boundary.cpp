@@ -483,7 +483,8 @@ GeometryEstimate geometry_derivative(const Scene& scene, int mi, const Vec3f& pi
 
 }  // namespace
 
-TEST_CASE("secondary visibility: a moving occluder and a moving light move a shadow", "[boundary]") {
+// [expectation]: not under the sanitizers; the taped-oracle case runs the same secondary term.
+TEST_CASE("secondary visibility: a moving occluder and a moving light move a shadow", "[boundary][expectation]") {
   for (int depth : {2, 4}) {
     auto scene = build(shadow_scene(depth));
     const Image ones = constant_adjoint(1.f);
@@ -652,8 +653,9 @@ nlohmann::json cornell_scene(int max_depth) {
 
 }  // namespace
 
+// [expectation]: not under the sanitizers; the taped-oracle case runs the same Cornell paths.
 TEST_CASE("interreflections: a Cornell box with a moving cube, sphere and light against finite differences",
-          "[boundary][interior]") {
+          "[boundary][interior][expectation]") {
   auto scene = build(cornell_scene(3));
   const Image ones = constant_adjoint(1.f);
   struct Case {
@@ -706,7 +708,9 @@ nlohmann::json dome_scene() {
 
 }  // namespace
 
-TEST_CASE("a smooth-shaded dome: interior derivatives through interpolated vertex normals", "[boundary][interior]") {
+// [expectation]: not under the sanitizers; the taped-oracle case runs the same dome.
+TEST_CASE("a smooth-shaded dome: interior derivatives through interpolated vertex normals",
+          "[boundary][interior][expectation]") {
   auto scene = build(dome_scene());
   const int mi = mesh_index(*scene, "dome");
   REQUIRE_FALSE(scene->meshes[size_t(mi)].normals.empty());

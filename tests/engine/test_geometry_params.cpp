@@ -158,7 +158,10 @@ TEST_CASE("geometry parameters are listed, posed and validated", "[geometry]") {
   CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("box") && Catch::Contains("not finite"));
 }
 
-TEST_CASE("geometry parameter gradients against finite differences, away from the identity pose", "[geometry]") {
+// [expectation]: not under the sanitizers; the prb == taped case runs compute_gradient on the same
+// scene and parameters.
+TEST_CASE("geometry parameter gradients against finite differences, away from the identity pose",
+          "[geometry][expectation]") {
   auto scene = build(pose_scene());
   auto set = [&](const std::string& name, const std::vector<float>& v) {
     set_value(*scene, scene->params.find(name), v);
@@ -314,7 +317,8 @@ TEST_CASE("smooth meshes: vertex normals follow the positions parameter", "[geom
   CHECK((last.x == 0.f && last.y == 0.f && last.z == 1.f));
 }
 
-TEST_CASE("smooth meshes: the positions gradient includes the normals' share", "[geometry]") {
+// [expectation]: not under the sanitizers; the pull-back case runs add_rest_normal_gradient.
+TEST_CASE("smooth meshes: the positions gradient includes the normals' share", "[geometry][expectation]") {
   auto scene = build(dome_scene());
   const int mi = mesh_named(*scene, "dome"), h = scene->params.find("dome.positions");
   // A smooth bump in z on the vertices inside the film (the grid's border stays): mostly a change of

@@ -313,7 +313,9 @@ TEST_CASE("pruned replays through media give the same gradient", "[media][replay
   }
 }
 
-TEST_CASE("medium gradients match finite differences in expectation", "[media]") {
+// [expectation]: not under the sanitizers; the prb == taped and pruned-replay cases run the same
+// medium gradients.
+TEST_CASE("medium gradients match finite differences in expectation", "[media][expectation]") {
   auto scene = fog_scene();
   // Finite differences render the same scene with majorants 3x the block maxima, so that θ ± hv
   // stays under them (majorants change the noise, not the expectation).
@@ -441,7 +443,8 @@ TEST_CASE("grid resampling: constants stay, linear ramps upsample exactly, downs
   for (float v : constant) CHECK(v == Approx(0.25f));
 }
 
-TEST_CASE("optimize recovers a density grid coarse to fine from a constant start", "[media][optimize]") {
+// [expectation]: not under the sanitizers; the schedule-stages case runs the same grid optimization.
+TEST_CASE("optimize recovers a density grid coarse to fine from a constant start", "[media][optimize][expectation]") {
   const std::string dir = test::temp_dir("gridopt");
   FogOptions o;
   o.resolution = 24;
