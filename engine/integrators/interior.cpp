@@ -315,12 +315,24 @@ struct TapedLeaf {
   int component = 0;
 };
 
+// Per thread, reused by every path: the tape (its chunks stay allocated), the leaves, the sweep's
+// adjoints, the emitters' log-areas and the path's taped hits.
+struct TapedScratch {
+  Tape tape;
+  std::vector<TapedLeaf> leaves;
+  std::vector<float> adjoint;
+  std::vector<Var> log_area;
+  std::vector<char> have_log_area;
+  std::vector<MovingHit<Var>> x;
+};
+
 void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path,
                          const std::vector<MovingHit<double>>& hits, const std::vector<Vec3d>& boundary_x,
                          const Vec3f& radiance, const Vec3d& a, const std::vector<int>& slot, bool interior,
-                         bool camera_moves, Tape& tape, std::vector<TapedLeaf>& leaves, std::vector<float>& adjoint,
-                         Accumulator& acc) {
+                         bool camera_moves, TapedScratch& scratch, Accumulator& acc) {
   const double select = double(scene.emitter_select_probability());
+  Tape& tape = scratch.tape;
+  std::vector<TapedLeaf>& leaves = scratch.leaves;
   tape.count = 0;
   leaves.clear();
   current_tape = &tape;
@@ -347,20 +359,23 @@ void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path
     }
     return t;
   };
-  std::vector<Var> log_area(scene.area_emitters.size());
-  std::vector<bool> have_log_area(scene.area_emitters.size(), false);
+  std::vector<Var>& log_area = scratch.log_area;
+  std::vector<char>& have_log_area = scratch.have_log_area;
+  log_area.resize(scene.area_emitters.size());
+  have_log_area.assign(scene.area_emitters.size(), 0);
   auto area_of = [&](int e) {
     if (!have_log_area[size_t(e)]) {
       const AreaEmitter& emitter = scene.area_emitters[size_t(e)];
       log_area[size_t(e)] = slot[size_t(emitter.mesh)] >= 0 ? leaf(std::log(double(emitter.total_area)), {4, e, 0, 0})
                                                             : Var(float(std::log(double(emitter.total_area))));
-      have_log_area[size_t(e)] = true;
+      have_log_area[size_t(e)] = 1;
     }
     return log_area[size_t(e)];
   };
   const Vec3<Var> camera_omega = vec(Vec3d(0.0), camera_moves, 3, 0, 0);
   Var total(0.f);
-  std::vector<MovingHit<Var>> x(path.size());
+  std::vector<MovingHit<Var>>& x = scratch.x;
+  x.resize(path.size());
   for (size_t k = 0; k < path.size(); ++k) {
     const PathVertex& v = path[k];
     const Vec3d d = v.direction;
@@ -420,6 +435,7 @@ void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path
   }
   current_tape = nullptr;
   if (!total.active()) return;
+  std::vector<float>& adjoint = scratch.adjoint;
   adjoint.assign(tape.size(), 0.f);
   adjoint[total.index] = 1.f;
   reverse_sweep(tape, adjoint, [&](uint32_t id, float g) {
@@ -631,6 +647,7 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
   es.hierarchy = options.edge_hierarchy;
   es.moving_tree = &moving_tree;
   es.all_tree = &all_tree;
+  tbb::enumerable_thread_specific<TapedScratch> taped_scratch;  // options.taped only
   tbb::parallel_for(tbb::blocked_range<int>(0, cam.height), [&](const tbb::blocked_range<int>& rows) {
     Accumulator& acc = per_thread.local();
     std::vector<PathVertex> path;
@@ -638,9 +655,6 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
     std::vector<Vec3d> boundary_x;
     std::vector<double> cdf;
     std::vector<uint32_t> index;
-    Tape tape;  // options.taped: one path's tape at a time, its chunks reused
-    std::vector<TapedLeaf> leaves;
-    std::vector<float> tape_adjoint;
     VertexRecorder recorder;
     recorder.scene = &scene;
     recorder.path = &path;
@@ -676,7 +690,7 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
           }
           if (options.taped)
             backpropagate_taped(scene, path, hits, boundary_x, radiance, a, slot, options.interior,
-                                options.camera_moves, tape, leaves, tape_adjoint, acc);
+                                options.camera_moves, taped_scratch.local(), acc);
           else
             backpropagate(scene, path, hits, boundary_x, radiance, a, slot, options.interior, options.camera_moves,
                           acc);

@@ -20,6 +20,7 @@ enum class Wrap { Repeat, Clamp };
 struct BilinearFootprint {
   int rows[2], cols[2];
   float weights[2][2];  // [row][col]
+  float tx, ty;         // the lookup's position within its cell (the weights' arguments)
 };
 
 inline int wrap_index(long i, int n, Wrap wrap) {
@@ -45,6 +46,7 @@ inline BilinearFootprint bilinear_footprint(int width, int height, Wrap wrap, Ve
   f.weights[0][1] = (1 - ty) * tx;
   f.weights[1][0] = ty * (1 - tx);
   f.weights[1][1] = ty * tx;
+  f.tx = tx, f.ty = ty;
   return f;
 }
 
@@ -72,8 +74,7 @@ Spectrum<T> bitmap_eval(const Param& p, Wrap wrap, Vec2f uv) {
 inline void bitmap_uv_gradient(const Param& p, Wrap wrap, Vec2f uv, Vec3f& d_du, Vec3f& d_dv) {
   const int w = p.width(), h = p.height(), c = p.channels();
   const BilinearFootprint f = bilinear_footprint(w, h, wrap, uv);
-  const float x = uv.x * float(w) - 0.5f, y = uv.y * float(h) - 0.5f;
-  const float tx = x - std::floor(x), ty = y - std::floor(y);
+  const float tx = f.tx, ty = f.ty;
   auto texel = [&](int r, int q) {
     const size_t base = (size_t(f.rows[r]) * size_t(w) + size_t(f.cols[q])) * size_t(c);
     return c == 1 ? Vec3f(p.value[base]) : Vec3f(p.value[base], p.value[base + 1], p.value[base + 2]);
