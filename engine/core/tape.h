@@ -31,11 +31,12 @@ struct Tape {
 
   uint32_t push(uint32_t a, float da, uint32_t b, float db) {
     if ((count & (kChunk - 1)) == 0 && (count >> kChunkBits) == chunks.size())
-      chunks.push_back(std::make_unique<TapeEntry[]>(kChunk));
+      chunks.push_back(std::make_unique_for_overwrite<TapeEntry[]>(kChunk));  // written before read
     chunks[count >> kChunkBits][count & (kChunk - 1)] = {a, b, da, db};
     return uint32_t(count++);
   }
   size_t size() const { return count; }
+  void clear() { count = 0; }  // keeps the chunks for the next recording
   const TapeEntry& operator[](size_t i) const { return chunks[i >> kChunkBits][i & (kChunk - 1)]; }
 };
 

@@ -333,7 +333,7 @@ void backpropagate_taped(const Scene& scene, const std::vector<PathVertex>& path
   const double select = double(scene.emitter_select_probability());
   Tape& tape = scratch.tape;
   std::vector<TapedLeaf>& leaves = scratch.leaves;
-  tape.count = 0;
+  tape.clear();
   leaves.clear();
   current_tape = &tape;
   auto leaf = [&](double value, TapedLeaf l) {

@@ -63,6 +63,7 @@ void check_material(const MaterialCase& mc, uint64_t seed) {
                   mc.wrap};
   store.require_grad({});
   const Vec3f tint = mc.tint;
+  Tape tape;  // one recording per (trial, parameter), its chunks reused
 
   for (int trial = 0; trial < 40; ++trial) {
     const Vec2f uv{float(rng.uniform(-0.5, 1.5)), float(rng.uniform(-0.5, 1.5))};
@@ -84,7 +85,7 @@ void check_material(const MaterialCase& mc, uint64_t seed) {
             p, i, [&] { return adjoint_dot(adjoint, m.eval<double>(store, uv, wo, wi, tint)); }));
       const GradientComparison c = compare_gradients(analytic, numeric, {}, kRelTolerance, kAbsFloor);
       // Tape oracle: record eval on the tape scalar, sweep back from ⟨adjoint, f⟩.
-      Tape tape;
+      tape.clear();
       current_tape = &tape;
       const Spectrum<Var> f = m.eval<Var>(store, uv, wo, wi, tint);
       current_tape = nullptr;
