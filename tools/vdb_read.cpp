@@ -5,9 +5,11 @@
 #include <malloc.h>
 #include <sys/resource.h>
 
+#include <atomic>
 #include <cstdio>
 #include <cstdlib>
 #include <exception>
+#include <filesystem>
 #include <new>
 #include <string>
 
@@ -16,6 +18,34 @@
 #include "engine/core/errors.h"
 #include "engine/scene/openvdb_reader.h"
 #include "engine/scene/volume_io.h"
+
+// While OpenVDB parses, no single allocation may exceed this. A legitimate parse allocates nodes
+// (at most ~1 MB each), decompression buffers of one leaf, and metadata no longer than the file;
+// a crafted length field asks for gigabytes at once (a 2.7 KB file made the reader fill a 3.5 GB
+// string before failing: 21 s at the default limit). The dense copy comes after the parse and is
+// checked against the grid limits instead. Not under ASan: its allocator has its own limits.
+namespace {
+std::atomic<size_t> single_allocation_cap{~size_t(0)};
+std::atomic<size_t> refused_allocation{0};  // the request the cap refused, if any
+}  // namespace
+
+#if defined(__has_feature)
+#if __has_feature(address_sanitizer)
+#define BL_READER_ASAN 1
+#endif
+#endif
+#if !defined(__SANITIZE_ADDRESS__) && !defined(BL_READER_ASAN)
+void* operator new(size_t n) {
+  if (n > single_allocation_cap.load(std::memory_order_relaxed)) {
+    refused_allocation = n;
+    throw std::bad_alloc();
+  }
+  if (void* p = std::malloc(n ? n : 1)) return p;
+  throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete(void* p, size_t) noexcept { std::free(p); }
+#endif
 
 int main(int argc, char** argv) {
   if (argc != 5) {
@@ -38,13 +68,22 @@ int main(int argc, char** argv) {
     setrlimit(RLIMIT_AS, &as);
   }
   try {
-    const bl::VolumeGrid grid = bl::read_vdb_in_process(path, argv[2]);
+    // The cap: 64 MB plus the file's size (the longest metadata string it can hold).
+    std::error_code ec;
+    const auto file_bytes = std::filesystem::file_size(path, ec);
+    single_allocation_cap = (size_t(64) << 20) + (ec ? 0 : size_t(file_bytes));
+    const bl::VolumeGrid grid =
+        bl::read_vdb_in_process(path, argv[2], [] { single_allocation_cap = ~size_t(0); });
     bl::write_vol(argv[3], grid);
     return 0;
   } catch (const bl::InputError& e) {
     std::fprintf(stderr, "%s\n", e.what());
   } catch (const std::bad_alloc&) {
-    std::fprintf(stderr,
+    if (const size_t n = refused_allocation.load())
+      std::fprintf(stderr, "%s: cannot read OpenVDB file (corrupt: a length field asks for %.0f MB at once)\n",
+                   path.c_str(), double(n) / (1 << 20));
+    else
+      std::fprintf(stderr,
                  "%s: cannot read OpenVDB file (needs more memory than the reader's limit of %llu MB, set by "
                  "BACKLIGHT_VDB_MEMORY_MB)\n",
                  path.c_str(), memory_mb);

@@ -44,7 +44,7 @@ void densify(const GridT& grid, const openvdb::CoordBBox& box, VolumeGrid& out, 
       }
 }
 
-VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name) {
+VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name, const std::function<void()>& parsed) {
   require_input_file(path);
   limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
   openvdb_initialize_once();
@@ -69,6 +69,7 @@ VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name)
                                                 : "several grids; name one (grids: " + candidates + ")");
   openvdb::GridBase::Ptr base = file.readGrid(chosen);
   file.close();
+  if (parsed) parsed();
   const openvdb::CoordBBox box = base->evalActiveVoxelBoundingBox();
   if (box.empty()) throw file_error(path, "grid '" + chosen + "' has no active voxels");
   // Extent in 64 bits: CoordBBox::dim() overflows int32 for voxels far apart.
@@ -112,10 +113,11 @@ VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name)
 
 }  // namespace
 
-VolumeGrid read_vdb_in_process(const std::string& path, const std::string& grid_name) {
+VolumeGrid read_vdb_in_process(const std::string& path, const std::string& grid_name,
+                               const std::function<void()>& parsed) {
   return with_path_errors([&] {
     try {
-      return read_unguarded(path, grid_name);
+      return read_unguarded(path, grid_name, parsed);
     } catch (const InputError&) {
       throw;
     } catch (const std::bad_alloc&) {

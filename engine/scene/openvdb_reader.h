@@ -4,6 +4,7 @@
 // bools, allocates what a length field says and loops over counts it never checks, so read_vdb
 // (openvdb_io.h) runs this in a separate process with memory and time limits and reads back a
 // .vol. Call it directly only on files you wrote yourself.
+#include <functional>
 #include <string>
 
 #include "engine/scene/volume_io.h"
@@ -26,7 +27,9 @@ inline constexpr bool kAddressSanitizer =
 #endif
 
 void openvdb_initialize_once();
-// The grid as described for read_vdb; errors are InputError "<file>: <problem>".
-VolumeGrid read_vdb_in_process(const std::string& path, const std::string& grid_name);
+// The grid as described for read_vdb; errors are InputError "<file>: <problem>". `parsed`, when
+// given, is called once OpenVDB has read the grid, before the dense copy is allocated.
+VolumeGrid read_vdb_in_process(const std::string& path, const std::string& grid_name,
+                               const std::function<void()>& parsed = {});
 
 }  // namespace bl
