@@ -7,11 +7,11 @@
 // standard error (32 batches, 16 for ref_textured_depth2). Every test is deterministic (fixed
 // seeds), so a pass or failure reproduces exactly.
 //
-// Budget: compile definitions BL_REF_IMAGE_BATCHES/SPP, BL_REF_GRAD_BATCHES/SPP and
-// BL_REF_SEED_BASE (the fast and slow executables differ only in these). For experiments, the
-// environment variables of the same names override the budgets, BL_REF_SEED_OFFSET shifts all
-// seeds, and BL_REF_DUMP=<dir> writes our mean, our standard error and the z-map of every
-// product as EXR files.
+// Budget: the environment variables BL_REF_IMAGE_BATCHES/SPP and BL_REF_GRAD_BATCHES/SPP (the
+// defaults below are CI's fast budget), BL_REF_SEED_OFFSET shifts all seeds (ctest's
+// test_mitsuba_reference_slow sets a larger budget and other seeds: tests/reference/CMakeLists.txt),
+// and BL_REF_DUMP=<dir> writes our mean, our standard error and the z-map of every product as EXR
+// files.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -42,9 +42,6 @@
 #ifndef BL_REF_GRAD_SPP
 #define BL_REF_GRAD_SPP 4
 #endif
-#ifndef BL_REF_SEED_BASE  // the slow variant uses other seeds, so it is an independent replication
-#define BL_REF_SEED_BASE 0
-#endif
 
 namespace {
 
@@ -69,11 +66,11 @@ int budget(const char* name, int fallback) {
   return v && *v ? std::max(1, std::atoi(v)) : fallback;
 }
 
-// Added to every batch seed: BL_REF_SEED_BASE, plus BL_REF_SEED_OFFSET from the environment
-// (experiments: other noise realisations).
+// Added to every batch seed: BL_REF_SEED_OFFSET from the environment (the slow run; experiments:
+// other noise realisations).
 uint64_t seed_offset() {
   const char* v = std::getenv("BL_REF_SEED_OFFSET");
-  return uint64_t(BL_REF_SEED_BASE) + (v && *v ? std::strtoull(v, nullptr, 10) : 0);
+  return v && *v ? std::strtoull(v, nullptr, 10) : 0;
 }
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
