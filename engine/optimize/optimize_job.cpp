@@ -543,7 +543,7 @@ class Job {
     }
     prepare_targets();
     matplotlib_ = root_ && probe_matplotlib();
-    if (!matplotlib_ && !quiet_)
+    if (!matplotlib_ && !quiet_ && !builtin_plots_chosen())
       std::fprintf(stderr, "optimize: python3-matplotlib not found: simple plots; with it, run %s %s\n",
                    plot_script().c_str(), c_.output.c_str());
     int start = 0;
@@ -1008,7 +1008,15 @@ class Job {
   }
 
   // Whether tools/plot_optimize can run here (python3 with matplotlib); decided once per run.
-  bool probe_matplotlib() const { return fs::exists(plot_script()) && run_python({"-c", "import matplotlib"}) == 0; }
+  // BACKLIGHT_PLOTS=builtin skips it (the built-in plotter; the test suite's optimizer runs use it:
+  // python's start-up and matplotlib cost more than a tiny job's iterations).
+  static bool builtin_plots_chosen() {
+    const char* choice = std::getenv("BACKLIGHT_PLOTS");
+    return choice && std::string(choice) == "builtin";
+  }
+  bool probe_matplotlib() const {
+    return !builtin_plots_chosen() && fs::exists(plot_script()) && run_python({"-c", "import matplotlib"}) == 0;
+  }
 
   // loss.png and param_rmse.png drawn by matplotlib from the CSV files. Without it the built-in
   // plotter draws them at every iteration, and the command is printed once.
