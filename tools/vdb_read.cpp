@@ -72,8 +72,7 @@ int main(int argc, char** argv) {
     std::error_code ec;
     const auto file_bytes = std::filesystem::file_size(path, ec);
     single_allocation_cap = (size_t(64) << 20) + (ec ? 0 : size_t(file_bytes));
-    const bl::VolumeGrid grid =
-        bl::read_vdb_in_process(path, argv[2], [] { single_allocation_cap = ~size_t(0); });
+    const bl::VolumeGrid grid = bl::read_vdb_in_process(path, argv[2], [] { single_allocation_cap = ~size_t(0); });
     bl::write_vol(argv[3], grid);
     return 0;
   } catch (const bl::InputError& e) {
@@ -84,9 +83,9 @@ int main(int argc, char** argv) {
                    path.c_str(), double(n) / (1 << 20));
     else
       std::fprintf(stderr,
-                 "%s: cannot read OpenVDB file (needs more memory than the reader's limit of %llu MB, set by "
-                 "BACKLIGHT_VDB_MEMORY_MB)\n",
-                 path.c_str(), memory_mb);
+                   "%s: cannot read OpenVDB file (needs more memory than the reader's limit of %llu MB, set by "
+                   "BACKLIGHT_VDB_MEMORY_MB)\n",
+                   path.c_str(), memory_mb);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "%s: cannot read OpenVDB file (%s)\n", path.c_str(), e.what());
   }

@@ -26,8 +26,8 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/integrators/gradient.h"
-#include "engine/io/image_io.h"
 #include "engine/integrators/render.h"
+#include "engine/io/image_io.h"
 #include "engine/scene/scene_load.h"
 
 #ifndef BL_REF_IMAGE_BATCHES
