@@ -3,9 +3,14 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <stdexcept>
 #include <string>
 #include <unordered_map>
 #include <utility>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
@@ -128,5 +133,101 @@ std::vector<float> LargeSteps::gradient_u(const std::vector<float>& g) const {
 size_t LargeSteps::vertex_count() const { return impl_->node.size(); }
 size_t LargeSteps::node_count() const { return impl_->copies.size(); }
 double LargeSteps::lambda() const { return impl_->lambda; }
+
+}  // namespace bl
+
+namespace bl {
+
+namespace {
+
+// out = (I + λL) in over z-slabs in parallel; every output element is written once, in order.
+void apply_m(const GridDims& d, double lambda, const double* in, double* out) {
+  const size_t sx = size_t(d.c), sy = sx * size_t(d.x), sz = sy * size_t(d.y);
+  tbb::parallel_for(tbb::blocked_range<int>(0, d.z), [&](const tbb::blocked_range<int>& r) {
+    for (int z = r.begin(); z != r.end(); ++z)
+      for (int y = 0; y < d.y; ++y)
+        for (int x = 0; x < d.x; ++x)
+          for (int c = 0; c < d.c; ++c) {
+            const size_t i = size_t(z) * sz + size_t(y) * sy + size_t(x) * sx + size_t(c);
+            const double v = in[i];
+            double lap = 0;  // Σ over in-grid neighbours of (v − neighbour)
+            if (x > 0) lap += v - in[i - sx];
+            if (x + 1 < d.x) lap += v - in[i + sx];
+            if (y > 0) lap += v - in[i - sy];
+            if (y + 1 < d.y) lap += v - in[i + sy];
+            if (z > 0) lap += v - in[i - sz];
+            if (z + 1 < d.z) lap += v - in[i + sz];
+            out[i] = v + lambda * lap;
+          }
+  });
+}
+
+double diagonal(const GridDims& d, double lambda, size_t i) {
+  const size_t sx = size_t(d.c), sy = sx * size_t(d.x), sz = sy * size_t(d.y);
+  const int x = int(i / sx % size_t(d.x)), y = int(i / sy % size_t(d.y)), z = int(i / sz);
+  const int degree = (x > 0) + (x + 1 < d.x) + (y > 0) + (y + 1 < d.y) + (z > 0) + (z + 1 < d.z);
+  return 1.0 + lambda * degree;
+}
+
+// Σ a·b with a fixed split (the same sum on every run and thread count).
+double dot(const std::vector<double>& a, const std::vector<double>& b) {
+  return tbb::parallel_deterministic_reduce(
+      tbb::blocked_range<size_t>(0, a.size(), 4096), 0.0,
+      [&](const tbb::blocked_range<size_t>& r, double acc) {
+        for (size_t i = r.begin(); i != r.end(); ++i) acc += a[i] * b[i];
+        return acc;
+      },
+      [](double p, double q) { return p + q; });
+}
+
+void check_dims(const GridDims& d, size_t n) {
+  if (d.x <= 0 || d.y <= 0 || d.z <= 0 || d.c <= 0 || d.size() != n)
+    throw std::invalid_argument("grid large steps: values do not match the grid's dimensions");
+}
+
+}  // namespace
+
+std::vector<float> grid_apply_m(const GridDims& d, double lambda, const std::vector<float>& x) {
+  check_dims(d, x.size());
+  const std::vector<double> in(x.begin(), x.end());
+  std::vector<double> out(in.size());
+  apply_m(d, lambda, in.data(), out.data());
+  return std::vector<float>(out.begin(), out.end());
+}
+
+std::vector<float> grid_solve_m(const GridDims& d, double lambda, const std::vector<float>& b,
+                                const std::vector<float>& guess) {
+  check_dims(d, b.size());
+  const size_t n = b.size();
+  std::vector<double> x(n, 0.0), r(n), z(n), p(n), q(n), inv_diag(n);
+  if (guess.size() == n) std::copy(guess.begin(), guess.end(), x.begin());
+  for (size_t i = 0; i < n; ++i) inv_diag[i] = 1.0 / diagonal(d, lambda, i);
+  apply_m(d, lambda, x.data(), q.data());
+  double b_norm2 = 0;
+  for (size_t i = 0; i < n; ++i) {
+    r[i] = double(b[i]) - q[i];
+    b_norm2 += double(b[i]) * double(b[i]);
+  }
+  if (b_norm2 == 0) return std::vector<float>(n, 0.f);
+  const double stop = 1e-14 * b_norm2;  // relative residual 1e-7: float precision of the result
+  for (size_t i = 0; i < n; ++i) z[i] = r[i] * inv_diag[i];
+  p = z;
+  double rz = dot(r, z);
+  // Jacobi-preconditioned CG converges in O(√(1 + 12λ)) iterations; the cap is far above that.
+  for (int it = 0; it < 1000 && dot(r, r) > stop; ++it) {
+    apply_m(d, lambda, p.data(), q.data());
+    const double alpha = rz / dot(p, q);
+    for (size_t i = 0; i < n; ++i) {
+      x[i] += alpha * p[i];
+      r[i] -= alpha * q[i];
+      z[i] = r[i] * inv_diag[i];
+    }
+    const double rz_new = dot(r, z);
+    const double beta = rz_new / rz;
+    rz = rz_new;
+    for (size_t i = 0; i < n; ++i) p[i] = z[i] + beta * p[i];
+  }
+  return std::vector<float>(x.begin(), x.end());
+}
 
 }  // namespace bl

@@ -49,3 +49,24 @@ class LargeSteps {
 };
 
 }  // namespace bl
+
+namespace bl {
+
+// Large steps for a grid parameter ([Z, Y, X, C], e.g. a medium's density): the same
+// reparametrisation u = M x with M = I + λ L, L the 6-neighbour Laplacian of the voxel lattice
+// (a voxel's degree counts its neighbours inside the grid: no flux through the faces), each
+// channel on its own. M is applied without a matrix; M⁻¹ comes from conjugate gradients with a
+// Jacobi preconditioner, stopped at a relative residual of 1e-7 (M's condition number is at most
+// 1 + 12λ). λ is in units of the grid's own voxels: after a coarse-to-fine resampling the same λ
+// smooths over the same number of (smaller) voxels.
+struct GridDims {
+  int x = 0, y = 0, z = 0, c = 0;
+  size_t size() const { return size_t(x) * size_t(y) * size_t(z) * size_t(c); }
+};
+// (I + λL) x.
+std::vector<float> grid_apply_m(const GridDims& d, double lambda, const std::vector<float>& x);
+// The x with (I + λL) x = b; `guess` (same size, or empty) starts the iteration.
+std::vector<float> grid_solve_m(const GridDims& d, double lambda, const std::vector<float>& b,
+                                const std::vector<float>& guess = {});
+
+}  // namespace bl

@@ -69,10 +69,14 @@ struct OptimizedParam {
   int average_from = -1;
   std::vector<float> average;
   int average_count = 0;
-  // Large steps (large_steps.h) for a mesh's `positions`: λ > 0 turns it on; Adam then steps on
-  // u = (I + λL) x with a uniform second moment unless the config says otherwise.
+  // Large steps (large_steps.h) for a mesh's `positions` or a grid: λ > 0 turns it on; Adam then
+  // steps on u = (I + λL) x with a uniform second moment unless the config says otherwise. Bounds
+  // (grids only) then hold for x: Adam's own are off and x is clamped after each step.
   double large_steps_lambda = 0;
-  std::shared_ptr<LargeSteps> large_steps;
+  std::shared_ptr<LargeSteps> large_steps;  // a mesh's
+  bool grid_large_steps = false;
+  bool has_bounds = false, has_schedule = false;
+  float lower = -1e30f, upper = 1e30f;
   // A mesh's `positions`: its triangles (for the surface distance and final/<shape>.ply).
   std::vector<uint32_t> mesh_indices;
   const std::vector<float>& result(const Param& p) const { return average_count > 0 ? average : p.value; }
@@ -282,8 +286,10 @@ Config parse_config(const std::string& path) {
       op.large_steps_lambda = l.number_required("lambda", 1e-6, 1e9);
       a.uniform = l.boolean("uniform_adam", true);
       l.finish();
-      if (p.has("bounds")) p.fail_at("bounds", "bounds cannot be combined with large_steps");
-      if (p.has("schedule")) p.fail_at("schedule", "a schedule cannot be combined with large_steps");
+      // Meshes refuse bounds and schedules once the parameter is known to be a mesh's (resolve).
+      op.has_bounds = p.has("bounds"), op.has_schedule = p.has("schedule");
+      op.lower = a.lower, op.upper = a.upper;
+      a.lower = -1e30f, a.upper = 1e30f;
     }
     if (p.has("regularizer")) {
       Node r = p.child("regularizer");
@@ -522,10 +528,17 @@ class Job {
       for (size_t k = 0; k < scene_->meshes.size() && k < scene_->mesh_poses.size(); ++k)
         if (scene_->mesh_poses[k].positions == p.handle) mesh = &scene_->meshes[k];
       if (mesh) p.mesh_indices = mesh->indices;
-      if (p.large_steps_lambda > 0) {
+      if (p.large_steps_lambda > 0 && !mesh && is_grid(scene_->params[p.handle])) {
+        p.grid_large_steps = true;
+      } else if (p.large_steps_lambda > 0) {
+        const std::string where = c_.file + ": /parameters/" + p.name;
         if (!mesh)
-          throw file_error(c_.file,
-                           "/parameters/" + p.name + "/large_steps: only for a mesh's positions (<shape>.positions)");
+          throw InputError(where +
+                           "/large_steps: only for a mesh's positions (<shape>.positions) or a grid "
+                           "(e.g. <medium>.density)");
+        if (p.has_bounds) throw InputError(where + "/bounds: bounds cannot be combined with large_steps on a mesh");
+        if (p.has_schedule)
+          throw InputError(where + "/schedule: a schedule cannot be combined with large_steps on a mesh");
         p.large_steps = std::make_shared<LargeSteps>(scene_->params[p.handle].value, mesh->indices,
                                                      p.large_steps_lambda, c_.file + ": /parameters/" + p.name);
       }
@@ -805,6 +818,12 @@ class Job {
           std::vector<float> u = p.large_steps->to_u(param.value);
           p.adam.step(u, p.large_steps->gradient_u(param.grad));
           param.value = p.large_steps->to_x(u);
+        } else if (p.grid_large_steps) {
+          const GridDims d{param.shape[2], param.shape[1], param.shape[0], param.shape[3]};
+          std::vector<float> u = grid_apply_m(d, p.large_steps_lambda, param.value);
+          p.adam.step(u, grid_solve_m(d, p.large_steps_lambda, param.grad));
+          param.value = grid_solve_m(d, p.large_steps_lambda, u, param.value);
+          for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
         } else {
           p.adam.step(param.value, param.grad);
         }

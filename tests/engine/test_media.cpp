@@ -7,15 +7,18 @@
 #include <catch2/catch.hpp>
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <random>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "engine/integrators/gradient.h"
 #include "engine/integrators/render.h"
+#include "engine/optimize/large_steps.h"
 #include "engine/optimize/optimizer.h"
 #include "engine/optimize/resample.h"
 #include "engine/scene/scene_load.h"
@@ -473,6 +476,61 @@ TEST_CASE("optimize recovers a density grid coarse to fine from a constant start
   const VolumeGrid final_grid = read_vol(dir + "/out/final/fog.density.vol");
   CHECK(final_grid.x == 8);
   CHECK(final_grid.bbox_min.x == -0.6f);
+}
+
+// Large steps on a density grid (engine/optimize/large_steps.h): Adam steps on u = (I + λL) x.
+// Its first step moves each element of u by lr·ĝ/(|ĝ| + ε) (±lr, a little less where the gradient
+// is tiny), so M = I + λL applied to the change of x is bounded by lr and mostly ±lr; the same
+// first step on x itself (plain Adam) changes x by ±lr with sign changes between neighbours, so
+// M times its change exceeds lr (the check's teeth). Bounds hold for x.
+TEST_CASE("large steps on a density grid step on u = (I + lambda L) x, and bounds hold for x", "[media][optimize]") {
+  const std::string dir = test::temp_dir("gridls");
+  FogOptions o;
+  o.resolution = 8;
+  o.blob = true;
+  write_fog_scene(dir, o);
+  const double lr = 0.1, lambda = 3;
+  auto run = [&](const std::string& name, double init, const std::string& extra) {
+    std::ofstream(dir + "/" + name + ".json") << R"({
+  "scene": "scene.json", "output": ")" + name + R"(",
+  "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": )" +
+                                                     std::to_string(init) + extra + R"(}},
+  "views": {"ring": {"count": 2, "radius": 3.5, "height": 0.5, "fov": 40},
+            "reference": {"set": {"fog.density": "density.vol"}, "spp": 4}},
+  "resolution": [12, 12], "spp": 2, "adjoint_spp": 2, "iterations": 1, "seed": 3
+})";
+    REQUIRE(run_optimize(dir + "/" + name + ".json", "", 0, true) == 0);
+    return read_vol(dir + "/" + name + "/final/fog.density.vol");
+  };
+  const GridDims d{8, 8, 8, 1};
+  const std::vector<float> x0(size_t(8 * 8 * 8), 0.5f);
+  const std::vector<float> m_x0 = grid_apply_m(d, lambda, x0);
+  // Largest |M Δx| and the share of voxels with |M Δx| ≥ 0.95 lr among those that moved.
+  auto u_steps = [&](const VolumeGrid& x) {
+    REQUIRE(x.data.size() == x0.size());
+    const std::vector<float> m_x = grid_apply_m(d, lambda, x.data);
+    double largest = 0;
+    int moved = 0, full = 0;
+    for (size_t i = 0; i < m_x.size(); ++i) {
+      const double step = std::abs(double(m_x[i]) - double(m_x0[i]));
+      largest = std::max(largest, step);
+      moved += step > 1e-5;
+      full += step >= 0.95 * lr;
+    }
+    return std::make_tuple(largest, moved, full);
+  };
+  const std::string large_steps = R"(, "large_steps": {"lambda": 3, "uniform_adam": false})";
+  const auto [largest, moved, full] = u_steps(run("ls", 0.5, large_steps));
+  INFO("large steps: largest |M dx| " << largest << ", " << full << " of " << moved << " moved voxels at >= 0.95 lr");
+  CHECK(largest <= lr * (1 + 1e-4));
+  CHECK(moved > 100);
+  CHECK(full >= 0.8 * moved);
+  const auto [plain_largest, plain_moved, plain_full] = u_steps(run("plain", 0.5, ""));
+  INFO("plain Adam: largest |M dx| " << plain_largest);
+  CHECK(plain_largest > 1.5 * lr);
+  // From 0.02 a step of ±0.1 would leave [0, 4]: x is clamped to the bounds.
+  const VolumeGrid low = run("low", 0.02, large_steps);
+  CHECK(*std::min_element(low.data.begin(), low.data.end()) == 0.f);
 }
 
 // A schedule stage's own learning rate replaces the parameter's from that stage on: with a

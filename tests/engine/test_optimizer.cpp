@@ -2,6 +2,7 @@
 // equivalence, and config errors.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -518,6 +519,67 @@ TEST_CASE("large steps: u = (I + lambda L) x round-trips and the u-gradient is t
     CHECK(gu[k] == Approx((f(up) - f(dn)) / (2 * h)).epsilon(1e-3).margin(1e-4));
     CHECK(gu[18 + k] == gu[k]);
   }
+}
+
+TEST_CASE("grid large steps: (I + lambda L) by hand, its inverse by conjugate gradients, the chain rule",
+          "[optimizer][large_steps]") {
+  const GridDims d{5, 4, 3, 2};  // x, y, z, channels: corners, edges, faces and interior voxels
+  const double lambda = 2.5;
+  std::vector<float> x(d.size());
+  for (size_t i = 0; i < x.size(); ++i) x[i] = float(std::sin(0.9 * double(i) + 0.2));
+  auto at = [&](const std::vector<float>& v, int ix, int iy, int iz, int c) {
+    return v[((size_t(iz) * size_t(d.y) + size_t(iy)) * size_t(d.x) + size_t(ix)) * size_t(d.c) + size_t(c)];
+  };
+  const std::vector<float> u = grid_apply_m(d, lambda, x);
+  // By hand: every voxel, each channel on its own, neighbours inside the grid only.
+  for (int iz = 0; iz < d.z; ++iz)
+    for (int iy = 0; iy < d.y; ++iy)
+      for (int ix = 0; ix < d.x; ++ix)
+        for (int c = 0; c < d.c; ++c) {
+          double lap = 0;
+          const double v = at(x, ix, iy, iz, c);
+          if (ix > 0) lap += v - at(x, ix - 1, iy, iz, c);
+          if (ix + 1 < d.x) lap += v - at(x, ix + 1, iy, iz, c);
+          if (iy > 0) lap += v - at(x, ix, iy - 1, iz, c);
+          if (iy + 1 < d.y) lap += v - at(x, ix, iy + 1, iz, c);
+          if (iz > 0) lap += v - at(x, ix, iy, iz - 1, c);
+          if (iz + 1 < d.z) lap += v - at(x, ix, iy, iz + 1, c);
+          CHECK(at(u, ix, iy, iz, c) == Approx(v + lambda * lap).margin(1e-5));
+        }
+  // A constant grid is a fixed point (no flux through the faces); the solve inverts the apply.
+  const std::vector<float> ones(d.size(), 0.7f);
+  for (float v : grid_apply_m(d, lambda, ones)) CHECK(v == Approx(0.7f));
+  const std::vector<float> back = grid_solve_m(d, lambda, u);
+  for (size_t i = 0; i < x.size(); ++i) CHECK(back[i] == Approx(x[i]).margin(2e-5));
+  // Chain rule: with x = M⁻¹u and f = Σ w·x, df/du = M⁻¹ w (M is symmetric): central differences.
+  std::vector<float> w(x.size());
+  for (size_t i = 0; i < w.size(); ++i) w[i] = float(std::cos(1.3 * double(i)));
+  const std::vector<float> gu = grid_solve_m(d, lambda, w);
+  auto f = [&](const std::vector<float>& uu) {
+    const std::vector<float> xx = grid_solve_m(d, lambda, uu);
+    double s = 0;
+    for (size_t i = 0; i < xx.size(); ++i) s += double(w[i]) * double(xx[i]);
+    return s;
+  };
+  for (size_t i = 0; i < u.size(); i += 7) {
+    std::vector<float> up = u, dn = u;
+    up[i] += 0.05f, dn[i] -= 0.05f;
+    CHECK(gu[i] == Approx((f(up) - f(dn)) / 0.1).epsilon(1e-3).margin(1e-4));
+  }
+  // A one-voxel spike in the gradient spreads into a bump that sums to the spike (M⁻¹ keeps the
+  // mean: 1ᵀM = 1ᵀ) and peaks at the spike.
+  std::vector<float> spike(d.size(), 0.f);
+  const size_t centre = ((size_t(1) * size_t(d.y) + 2) * size_t(d.x) + 2) * size_t(d.c);  // (2, 2, 1), channel 0
+  spike[centre] = 1.f;
+  const std::vector<float> bump = grid_solve_m(d, lambda, spike);
+  double total = 0, other_channel = 0;
+  for (size_t i = 0; i < bump.size(); ++i) (i % 2 == 0 ? total : other_channel) += bump[i];
+  CHECK(total == Approx(1.0).margin(1e-4));
+  CHECK(other_channel == Approx(0.0).margin(1e-6));
+  CHECK(*std::max_element(bump.begin(), bump.end()) == bump[centre]);
+  CHECK(bump[centre] < 0.5f);
+  // Values that do not match the dimensions are refused.
+  CHECK_THROWS(grid_apply_m(d, lambda, std::vector<float>(7)));
 }
 
 TEST_CASE("large steps damp a one-vertex spike into a smooth bump and keep seams closed", "[optimizer][large_steps]") {
