@@ -49,8 +49,9 @@ void on_sigint(int) { interrupted = 1; }
 struct Stage {
   int until = 0;  // iterations [previous until, until) run at this resolution
   int width = 0, height = 0;
-  int depth = 0;  // > 0: a volume grid stage [X, Y, Z] = [width, height, depth]
-  double lr = 0;  // > 0: the learning rate during this stage (decay still applies); 0: the parameter's
+  int depth = 0;                   // > 0: a volume grid stage [X, Y, Z] = [width, height, depth]
+  double lr = 0;                   // > 0: the learning rate during this stage (decay still applies); 0: the parameter's
+  double large_steps_lambda = -1;  // ≥ 0: a grid's large-steps λ during this stage (0: off); < 0: the parameter's
 };
 
 struct OptimizedParam {
@@ -76,6 +77,7 @@ struct OptimizedParam {
   std::shared_ptr<LargeSteps> large_steps;  // a mesh's
   bool grid_large_steps = false;
   bool has_bounds = false, has_schedule = false;
+  bool bounds_outside_adam = false;
   float lower = -1e30f, upper = 1e30f;
   // A mesh's `positions`: its triangles (for the surface distance and final/<shape>.ply).
   std::vector<uint32_t> mesh_indices;
@@ -273,6 +275,7 @@ Config parse_config(const std::string& path) {
         }
         stage.width = r[0].get<int>(), stage.height = r[1].get<int>();
         if (s.has("lr")) stage.lr = s.number_required("lr", 1e-30, 1e6);
+        if (s.has("large_steps_lambda")) stage.large_steps_lambda = s.number_required("large_steps_lambda", 0, 1e9);
         if (!op.stages.empty() && stage.until <= op.stages.back().until)
           s.fail_at("until", "stages must be increasing");
         s.finish();
@@ -286,10 +289,16 @@ Config parse_config(const std::string& path) {
       op.large_steps_lambda = l.number_required("lambda", 1e-6, 1e9);
       a.uniform = l.boolean("uniform_adam", true);
       l.finish();
-      // Meshes refuse bounds and schedules once the parameter is known to be a mesh's (resolve).
-      op.has_bounds = p.has("bounds"), op.has_schedule = p.has("schedule");
+    }
+    // Meshes refuse bounds and schedules once the parameter is known to be a mesh's (resolve).
+    op.has_bounds = p.has("bounds"), op.has_schedule = p.has("schedule");
+    bool stage_large_steps = false;
+    for (const Stage& st : op.stages) stage_large_steps |= st.large_steps_lambda > 0;
+    if (op.large_steps_lambda > 0 || stage_large_steps) {
+      // Bounds hold for x, clamped after each step (Adam's own would clamp u).
       op.lower = a.lower, op.upper = a.upper;
       a.lower = -1e30f, a.upper = 1e30f;
+      op.bounds_outside_adam = true;
     }
     if (p.has("regularizer")) {
       Node r = p.child("regularizer");
@@ -528,9 +537,9 @@ class Job {
       for (size_t k = 0; k < scene_->meshes.size() && k < scene_->mesh_poses.size(); ++k)
         if (scene_->mesh_poses[k].positions == p.handle) mesh = &scene_->meshes[k];
       if (mesh) p.mesh_indices = mesh->indices;
-      if (p.large_steps_lambda > 0 && !mesh && is_grid(scene_->params[p.handle])) {
+      if (p.bounds_outside_adam && !mesh && is_grid(scene_->params[p.handle])) {
         p.grid_large_steps = true;
-      } else if (p.large_steps_lambda > 0) {
+      } else if (p.bounds_outside_adam) {
         const std::string where = c_.file + ": /parameters/" + p.name;
         if (!mesh)
           throw InputError(where +
@@ -738,6 +747,12 @@ class Job {
     return p.stages.empty() ? nullptr : &p.stages.back();
   }
 
+  // A grid's large-steps λ at an iteration: its stage's, else the parameter's.
+  static double grid_lambda(const OptimizedParam& p, int iteration) {
+    const Stage* s = stage_at(p, iteration);
+    return s && s->large_steps_lambda >= 0 ? s->large_steps_lambda : p.large_steps_lambda;
+  }
+
   int optimize(int start) {
     std::signal(SIGINT, on_sigint);
     Progress progress("optimize", uint64_t(c_.iterations), "it", !quiet_);
@@ -818,15 +833,16 @@ class Job {
           std::vector<float> u = p.large_steps->to_u(param.value);
           p.adam.step(u, p.large_steps->gradient_u(param.grad));
           param.value = p.large_steps->to_x(u);
-        } else if (p.grid_large_steps) {
+        } else if (const double lambda = grid_lambda(p, it); p.grid_large_steps && lambda > 0) {
           const GridDims d{param.shape[2], param.shape[1], param.shape[0], param.shape[3]};
-          std::vector<float> u = grid_apply_m(d, p.large_steps_lambda, param.value);
-          p.adam.step(u, grid_solve_m(d, p.large_steps_lambda, param.grad));
-          param.value = grid_solve_m(d, p.large_steps_lambda, u, param.value);
-          for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
+          std::vector<float> u = grid_apply_m(d, lambda, param.value);
+          p.adam.step(u, grid_solve_m(d, lambda, param.grad));
+          param.value = grid_solve_m(d, lambda, u, param.value);
         } else {
           p.adam.step(param.value, param.grad);
         }
+        if (p.bounds_outside_adam)
+          for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
         if (p.average_from >= 0 && it + 1 > p.average_from) {
           if (p.average_count == 0) {
             p.average = param.value;

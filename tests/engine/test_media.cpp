@@ -528,6 +528,15 @@ TEST_CASE("large steps on a density grid step on u = (I + lambda L) x, and bound
   const auto [plain_largest, plain_moved, plain_full] = u_steps(run("plain", 0.5, ""));
   INFO("plain Adam: largest |M dx| " << plain_largest);
   CHECK(plain_largest > 1.5 * lr);
+  // A schedule stage's large_steps_lambda is the λ of its iterations: the same step, bit for bit;
+  // 0 turns large steps off for the stage (plain Adam's step, bit for bit).
+  const VolumeGrid ls = read_vol(dir + "/ls/final/fog.density.vol"),
+                   plain = read_vol(dir + "/plain/final/fog.density.vol");
+  CHECK(run("stage", 0.5, R"(, "schedule": [{"until": 1, "resolution": [8, 8, 8], "large_steps_lambda": 3}])").data ==
+        ls.data);
+  CHECK(
+      run("off", 0.5, large_steps + R"(, "schedule": [{"until": 1, "resolution": [8, 8, 8], "large_steps_lambda": 0}])")
+          .data == plain.data);
   // From 0.02 a step of ±0.1 would leave [0, 4]: x is clamped to the bounds.
   const VolumeGrid low = run("low", 0.02, large_steps);
   CHECK(*std::min_element(low.data.begin(), low.data.end()) == 0.f);
