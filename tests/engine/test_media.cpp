@@ -180,6 +180,17 @@ double z_score(const MeanSe& a, const MeanSe& b, double scale_a = 1.0) {
   return (scale_a * a.mean - b.mean) / std::sqrt(scale_a * scale_a * a.se * a.se + b.se * b.se);
 }
 
+// A fresh folder holding the fog scene with a blob density (the optimizer jobs' ground truth),
+// rendered at `resolution`² pixels.
+std::string blob_fog_dir(const std::string& name, int resolution) {
+  const std::string dir = test::temp_dir(name);
+  FogOptions o;
+  o.resolution = resolution;
+  o.blob = true;
+  write_fog_scene(dir, o);
+  return dir;
+}
+
 }  // namespace
 
 TEST_CASE("Beer-Lambert: light through an absorbing slab behind a null boundary", "[media]") {
@@ -448,11 +459,7 @@ TEST_CASE("grid resampling: constants stay, linear ramps upsample exactly, downs
 
 // [expectation]: not under the sanitizers; the schedule-stages case runs the same grid optimization.
 TEST_CASE("optimize recovers a density grid coarse to fine from a constant start", "[media][optimize][expectation]") {
-  const std::string dir = test::temp_dir("gridopt");
-  FogOptions o;
-  o.resolution = 24;
-  o.blob = true;
-  write_fog_scene(dir, o);
+  const std::string dir = blob_fog_dir("gridopt", 24);
   std::ofstream(dir + "/opt.json") << R"({
   "scene": "scene.json", "output": "out",
   "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": 0.5,
@@ -484,11 +491,7 @@ TEST_CASE("optimize recovers a density grid coarse to fine from a constant start
 // first step on x itself (plain Adam) changes x by ±lr with sign changes between neighbours, so
 // M times its change exceeds lr (the check's teeth). Bounds hold for x.
 TEST_CASE("large steps on a density grid step on u = (I + lambda L) x, and bounds hold for x", "[media][optimize]") {
-  const std::string dir = test::temp_dir("gridls");
-  FogOptions o;
-  o.resolution = 8;
-  o.blob = true;
-  write_fog_scene(dir, o);
+  const std::string dir = blob_fog_dir("gridls", 8);
   const double lr = 0.1, lambda = 3;
   auto run = [&](const std::string& name, double init, const std::string& extra) {
     std::ofstream(dir + "/" + name + ".json") << R"({
@@ -546,11 +549,7 @@ TEST_CASE("large steps on a density grid step on u = (I + lambda L) x, and bound
 // negligible rate in the second stage, the final 8³ grid is the trilinear upsampling of the 4³
 // grid reached at the switch (a stage without "lr" would keep moving it).
 TEST_CASE("optimize schedule stages take their own learning rate", "[media][optimize]") {
-  const std::string dir = test::temp_dir("stagelr");
-  FogOptions o;
-  o.resolution = 8;
-  o.blob = true;
-  write_fog_scene(dir, o);
+  const std::string dir = blob_fog_dir("stagelr", 8);
   auto config = [&](const std::string& name, const std::string& second_stage) {
     std::ofstream(dir + "/" + name + ".json") << R"({
   "scene": "scene.json", "output": ")" + name + R"(",
