@@ -435,6 +435,15 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "/parameters/floor.positions/large_steps/lambda");
   expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "large_steps": {"lambda": 5, "lamda": 1}}})"),
                "unknown key 'lamda'");
+  // A schedule stage's large_steps_lambda: ≥ 0, and only for grids.
+  expect_error(
+      with_parameters(
+          R"({"floor.albedo": {"lr": 0.1, "schedule": [{"until": 2, "resolution": [8, 8], "large_steps_lambda": -1}]}})"),
+      "/parameters/floor.albedo/schedule/0/large_steps_lambda");
+  expect_error(
+      with_parameters(
+          R"({"floor.albedo": {"lr": 0.1, "schedule": [{"until": 2, "resolution": [8, 8], "large_steps_lambda": 2}]}})"),
+      "/parameters/floor.albedo/large_steps: only for a mesh's positions (<shape>.positions) or a grid");
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
