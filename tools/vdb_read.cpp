@@ -29,12 +29,7 @@ std::atomic<size_t> single_allocation_cap{~size_t(0)};
 std::atomic<size_t> refused_allocation{0};  // the request the cap refused, if any
 }  // namespace
 
-#if defined(__has_feature)
-#if __has_feature(address_sanitizer)
-#define BL_READER_ASAN 1
-#endif
-#endif
-#if !defined(__SANITIZE_ADDRESS__) && !defined(BL_READER_ASAN)
+#if !BL_ADDRESS_SANITIZER
 void* operator new(size_t n) {
   if (n > single_allocation_cap.load(std::memory_order_relaxed)) {
     refused_allocation = n;

@@ -13,18 +13,18 @@ namespace bl {
 
 // Built with AddressSanitizer: the reader process cannot have its address space limited (ASan's
 // shadow memory alone reserves terabytes), so it gets ASan's RSS and allocation limits instead.
-inline constexpr bool kAddressSanitizer =
+// BL_ADDRESS_SANITIZER is the same fact for the preprocessor (tools/vdb_read.cpp).
 #if defined(__SANITIZE_ADDRESS__)
-    true;
+#define BL_ADDRESS_SANITIZER 1
 #elif defined(__has_feature)
 #if __has_feature(address_sanitizer)
-    true;
-#else
-    false;
+#define BL_ADDRESS_SANITIZER 1
 #endif
-#else
-    false;
 #endif
+#ifndef BL_ADDRESS_SANITIZER
+#define BL_ADDRESS_SANITIZER 0
+#endif
+inline constexpr bool kAddressSanitizer = BL_ADDRESS_SANITIZER;
 
 void openvdb_initialize_once();
 // The grid as described for read_vdb; errors are InputError "<file>: <problem>". `parsed`, when
