@@ -8,7 +8,9 @@
 #include <tbb/global_control.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -78,6 +80,11 @@ struct OptimizedParam {
   bool grid_large_steps = false;
   bool has_bounds = false, has_schedule = false;
   bool bounds_outside_adam = false;
+  bool wants_large_steps = false;  // λ > 0 for the parameter or one of its stages
+  // "parametrization": "log": Adam (and large steps) work on u = ln max(x, kLogFloor) and the
+  // parameter takes x = e^u after each step, so a step changes x by a factor, not an amount: small
+  // values (empty space of a density) move little, large ones fast. Bounds then hold for x.
+  bool log_space = false;
   float lower = -1e30f, upper = 1e30f;
   // A mesh's `positions`: its triangles (for the surface distance and final/<shape>.ply).
   std::vector<uint32_t> mesh_indices;
@@ -290,12 +297,19 @@ Config parse_config(const std::string& path) {
       a.uniform = l.boolean("uniform_adam", true);
       l.finish();
     }
+    if (p.has("parametrization")) {
+      const std::string t = p.string("parametrization");
+      if (t != "linear" && t != "log") p.fail_at("parametrization", "expected \"linear\" or \"log\"");
+      op.log_space = t == "log";
+      if (op.log_space && a.upper <= 0) p.fail_at("bounds", "a log parametrization needs an upper bound > 0");
+    }
     // Meshes refuse bounds and schedules once the parameter is known to be a mesh's (resolve).
     op.has_bounds = p.has("bounds"), op.has_schedule = p.has("schedule");
     bool stage_large_steps = false;
     for (const Stage& st : op.stages) stage_large_steps |= st.large_steps_lambda > 0;
-    if (op.large_steps_lambda > 0 || stage_large_steps) {
-      // Bounds hold for x, clamped after each step (Adam's own would clamp u).
+    op.wants_large_steps = op.large_steps_lambda > 0 || stage_large_steps;
+    if (op.wants_large_steps || op.log_space) {
+      // Bounds hold for x, clamped after each step (Adam's own would clamp u = (I + λL)x or ln x).
       op.lower = a.lower, op.upper = a.upper;
       a.lower = -1e30f, a.upper = 1e30f;
       op.bounds_outside_adam = true;
@@ -377,6 +391,18 @@ double add_total_variation(Param& p, double weight) {
           }
         }
   return weight * tv / cells;
+}
+
+// A log parametrization's floor: values below it enter log space as kLogFloor.
+constexpr float kLogFloor = 1e-6f;
+
+// In place: value x → u = ln max(x, kLogFloor) and gradient df/dx → df/du = df/dx · max(x, kLogFloor).
+void to_log_space(std::vector<float>& value, std::vector<float>& grad) {
+  for (size_t i = 0; i < value.size(); ++i) {
+    const float x = std::max(value[i], kLogFloor);
+    grad[i] *= x;
+    value[i] = std::log(x);
+  }
 }
 
 // Root-mean-square difference of `values` (laid out as parameter a) and parameter b after
@@ -537,10 +563,12 @@ class Job {
       for (size_t k = 0; k < scene_->meshes.size() && k < scene_->mesh_poses.size(); ++k)
         if (scene_->mesh_poses[k].positions == p.handle) mesh = &scene_->meshes[k];
       if (mesh) p.mesh_indices = mesh->indices;
-      if (p.bounds_outside_adam && !mesh && is_grid(scene_->params[p.handle])) {
+      const std::string where = c_.file + ": /parameters/" + p.name;
+      if (p.log_space && mesh)
+        throw InputError(where + "/parametrization: \"log\" is for positive values, not a mesh's positions");
+      if (p.wants_large_steps && !mesh && is_grid(scene_->params[p.handle])) {
         p.grid_large_steps = true;
-      } else if (p.bounds_outside_adam) {
-        const std::string where = c_.file + ": /parameters/" + p.name;
+      } else if (p.wants_large_steps) {
         if (!mesh)
           throw InputError(where +
                            "/large_steps: only for a mesh's positions (<shape>.positions) or a grid "
@@ -829,6 +857,7 @@ class Job {
         Param& param = scene_->params[p.handle];
         for (auto& g : param.grad) g /= float(per_iteration);
         loss += add_total_variation(param, p.tv_weight);
+        if (p.log_space) to_log_space(param.value, param.grad);
         if (p.large_steps) {
           std::vector<float> u = p.large_steps->to_u(param.value);
           p.adam.step(u, p.large_steps->gradient_u(param.grad));
@@ -841,6 +870,8 @@ class Job {
         } else {
           p.adam.step(param.value, param.grad);
         }
+        if (p.log_space)
+          for (float& x : param.value) x = std::exp(x);
         if (p.bounds_outside_adam)
           for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
         if (p.average_from >= 0 && it + 1 > p.average_from) {

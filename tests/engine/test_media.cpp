@@ -574,3 +574,76 @@ TEST_CASE("optimize schedule stages take their own learning rate", "[media][opti
   CHECK(config("frozen", R"({"until": 6, "resolution": [8, 8, 8], "lr": 1e-12})") < 1e-6);
   CHECK(config("moving", R"({"until": 6, "resolution": [8, 8, 8]})") > 0.05);
 }
+
+// "parametrization": "log": Adam steps on u = ln x. Its first step moves each element of u by
+// about ±lr (less where the gradient is tiny), so x changes by a factor e^(±lr), not by ±lr as
+// in plain Adam (the check's teeth: the plain run's ratios are not factors of e^(±lr)). With
+// large steps the smoothed quantity is u: |M Δu| ≤ lr. Values under the floor enter log space at
+// 1e-6; bounds hold for x.
+TEST_CASE("a log parametrization steps by factors, with and without large steps", "[media][optimize]") {
+  const std::string dir = blob_fog_dir("gridlog", 8);
+  const double lr = 0.1;
+  auto run = [&](const std::string& name, double init, const std::string& extra) {
+    std::ofstream(dir + "/" + name + ".json") << R"({
+  "scene": "scene.json", "output": ")" + name + R"(",
+  "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": )" +
+                                                     std::to_string(init) + extra + R"(}},
+  "views": {"ring": {"count": 2, "radius": 3.5, "height": 0.5, "fov": 40},
+            "reference": {"set": {"fog.density": "density.vol"}, "spp": 4}},
+  "resolution": [12, 12], "spp": 2, "adjoint_spp": 2, "iterations": 1, "seed": 3
+})";
+    REQUIRE(run_optimize(dir + "/" + name + ".json", "", 0, true) == 0);
+    return read_vol(dir + "/" + name + "/final/fog.density.vol").data;
+  };
+  // Per voxel that moved: |ln(x1 / x0)|, the step in u.
+  auto log_steps = [&](const std::vector<float>& x1, double x0) {
+    REQUIRE(x1.size() == size_t(8 * 8 * 8));
+    std::vector<double> s;
+    for (float v : x1)
+      if (std::abs(double(v) - x0) > 1e-7 * x0) s.push_back(std::abs(std::log(double(v) / x0)));
+    return s;
+  };
+  const std::string log = R"(, "parametrization": "log")";
+  for (const double x0 : {0.5, 0.05}) {
+    const std::vector<double> s = log_steps(run("log", x0, log), x0);
+    INFO("x0 " << x0 << ": " << s.size() << " voxels moved");
+    CHECK(s.size() > 100);
+    int full = 0;
+    for (double v : s) {
+      CHECK(v <= lr * (1 + 1e-5));
+      full += v >= 0.95 * lr;
+    }
+    CHECK(full >= int(0.8 * double(s.size())));
+  }
+  // Plain Adam from 0.05: steps of ±0.1 leave [0, 4] downwards (clamped to 0) or triple x; only
+  // voxels with a gradient near Adam's ε would step by less.
+  const std::vector<double> plain = log_steps(run("plain", 0.05, ""), 0.05);
+  int plain_factors = 0;
+  for (double v : plain) plain_factors += v <= lr * (1 + 1e-5);
+  INFO(plain_factors << " of " << plain.size() << " plain steps within a factor e^(+-lr)");
+  CHECK(plain.size() > 100);
+  CHECK(plain_factors <= int(0.05 * double(plain.size())));
+  // With large steps, M = I + λL acts on u = ln x.
+  const double lambda = 3;
+  const GridDims d{8, 8, 8, 1};
+  const std::vector<float> x1 = run("logls", 0.5, log + R"(, "large_steps": {"lambda": 3, "uniform_adam": false})");
+  std::vector<float> du(x1.size());
+  for (size_t i = 0; i < x1.size(); ++i) du[i] = float(std::log(double(x1[i]) / 0.5));
+  const std::vector<float> m_du = grid_apply_m(d, lambda, du);
+  double largest = 0;
+  int moved = 0, full = 0;
+  for (float v : m_du) {
+    largest = std::max(largest, double(std::abs(v)));
+    moved += std::abs(v) > 1e-5f;
+    full += std::abs(v) >= 0.95 * lr;
+  }
+  INFO("largest |M du| " << largest << ", " << full << " of " << moved);
+  CHECK(largest <= lr * (1 + 1e-4));
+  CHECK(full >= 0.8 * moved);
+  CHECK(moved > 100);
+  // Under the floor: x = 0 enters log space as 1e-6 and leaves it as 1e-6 · e^(±lr) or so.
+  for (float v : run("zero", 0, log)) CHECK((v >= 0.9e-6f && v <= 1.12e-6f));
+  // Bounds hold for x: 3.9 · e^0.1 = 4.31 is clamped to 4.
+  const std::vector<float> high = run("high", 3.9, log);
+  CHECK(*std::max_element(high.begin(), high.end()) == 4.f);
+}

@@ -444,6 +444,13 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       with_parameters(
           R"({"floor.albedo": {"lr": 0.1, "schedule": [{"until": 2, "resolution": [8, 8], "large_steps_lambda": 2}]}})"),
       "/parameters/floor.albedo/large_steps: only for a mesh's positions (<shape>.positions) or a grid");
+  // A log parametrization: "linear" or "log", an upper bound > 0, not for a mesh's positions.
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "parametrization": "exp"}})"),
+               "/parameters/floor.albedo/parametrization: expected \"linear\" or \"log\"");
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "bounds": [-2, -1], "parametrization": "log"}})"),
+               "/parameters/floor.albedo/bounds: a log parametrization needs an upper bound > 0");
+  expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "parametrization": "log"}})"),
+               "/parameters/floor.positions/parametrization: \"log\" is for positive values");
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
