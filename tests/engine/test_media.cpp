@@ -485,6 +485,25 @@ TEST_CASE("optimize recovers a density grid coarse to fine from a constant start
   CHECK(final_grid.bbox_min.x == -0.6f);
 }
 
+namespace {
+
+// One optimizer iteration on the blob fog of `dir` (blob_fog_dir) from a constant `init`: Adam
+// with lr 0.1 and bounds [0, 4], `extra` adding keys to the parameter's entry; the grid it ends with.
+VolumeGrid one_density_step(const std::string& dir, const std::string& name, double init, const std::string& extra) {
+  std::ofstream(dir + "/" + name + ".json") << R"({
+  "scene": "scene.json", "output": ")" + name + R"(",
+  "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": )" +
+                                                   std::to_string(init) + extra + R"(}},
+  "views": {"ring": {"count": 2, "radius": 3.5, "height": 0.5, "fov": 40},
+            "reference": {"set": {"fog.density": "density.vol"}, "spp": 4}},
+  "resolution": [12, 12], "spp": 2, "adjoint_spp": 2, "iterations": 1, "seed": 3
+})";
+  REQUIRE(run_optimize(dir + "/" + name + ".json", "", 0, true) == 0);
+  return read_vol(dir + "/" + name + "/final/fog.density.vol");
+}
+
+}  // namespace
+
 // Large steps on a density grid (engine/optimize/large_steps.h): Adam steps on u = (I + λL) x.
 // Its first step moves each element of u by lr·ĝ/(|ĝ| + ε) (±lr, a little less where the gradient
 // is tiny), so M = I + λL applied to the change of x is bounded by lr and mostly ±lr; the same
@@ -494,16 +513,7 @@ TEST_CASE("large steps on a density grid step on u = (I + lambda L) x, and bound
   const std::string dir = blob_fog_dir("gridls", 8);
   const double lr = 0.1, lambda = 3;
   auto run = [&](const std::string& name, double init, const std::string& extra) {
-    std::ofstream(dir + "/" + name + ".json") << R"({
-  "scene": "scene.json", "output": ")" + name + R"(",
-  "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": )" +
-                                                     std::to_string(init) + extra + R"(}},
-  "views": {"ring": {"count": 2, "radius": 3.5, "height": 0.5, "fov": 40},
-            "reference": {"set": {"fog.density": "density.vol"}, "spp": 4}},
-  "resolution": [12, 12], "spp": 2, "adjoint_spp": 2, "iterations": 1, "seed": 3
-})";
-    REQUIRE(run_optimize(dir + "/" + name + ".json", "", 0, true) == 0);
-    return read_vol(dir + "/" + name + "/final/fog.density.vol");
+    return one_density_step(dir, name, init, extra);
   };
   const GridDims d{8, 8, 8, 1};
   const std::vector<float> x0(size_t(8 * 8 * 8), 0.5f);
@@ -584,16 +594,7 @@ TEST_CASE("a log parametrization steps by factors, with and without large steps"
   const std::string dir = blob_fog_dir("gridlog", 8);
   const double lr = 0.1;
   auto run = [&](const std::string& name, double init, const std::string& extra) {
-    std::ofstream(dir + "/" + name + ".json") << R"({
-  "scene": "scene.json", "output": ")" + name + R"(",
-  "parameters": {"fog.density": {"lr": 0.1, "bounds": [0, 4], "init": )" +
-                                                     std::to_string(init) + extra + R"(}},
-  "views": {"ring": {"count": 2, "radius": 3.5, "height": 0.5, "fov": 40},
-            "reference": {"set": {"fog.density": "density.vol"}, "spp": 4}},
-  "resolution": [12, 12], "spp": 2, "adjoint_spp": 2, "iterations": 1, "seed": 3
-})";
-    REQUIRE(run_optimize(dir + "/" + name + ".json", "", 0, true) == 0);
-    return read_vol(dir + "/" + name + "/final/fog.density.vol").data;
+    return one_density_step(dir, name, init, extra).data;
   };
   // Per voxel that moved: |ln(x1 / x0)|, the step in u.
   auto log_steps = [&](const std::vector<float>& x1, double x0) {
