@@ -56,7 +56,9 @@ namespace {
 
 // A floor seen from above under a uniform sky, direct lighting only: the image is a blurred copy
 // of the texture, so recovering it is well posed and quick.
-std::string write_tiny_job(const std::string& dir, int iterations, const std::string& extra = "") {
+// `extra` adds top-level keys to the job, `param_extra` keys to the texture's parameter entry.
+std::string write_tiny_job(const std::string& dir, int iterations, const std::string& extra = "",
+                           const std::string& param_extra = "") {
   Image checker(64, 64, 3);
   for (int y = 0; y < 64; ++y)
     for (int x = 0; x < 64; ++x)
@@ -78,7 +80,8 @@ std::string write_tiny_job(const std::string& dir, int iterations, const std::st
   std::ofstream(dir + "/job.json") << R"({
   "scene": "scene.json",
   "output": "out",
-  "parameters": {"floor.albedo": {"lr": 0.05, "bounds": [0, 1]}},
+  "parameters": {"floor.albedo": {"lr": 0.05, "bounds": [0, 1])" +
+                                          param_extra + R"(}},
   "views": {"cameras": ["top", "side", {"name": "extra", "origin": [-1.2, 2.2, 1.6], "target": [0, 0, 0], "fov": 50,
                                          "resolution": [32, 32]}],
             "reference": {"set": {"floor.albedo": "truth.exr"}, "spp": 64}},
@@ -188,24 +191,27 @@ TEST_CASE("the validation loss leaves out the renders' own Monte Carlo noise", "
 
 TEST_CASE("resuming from a checkpoint reaches the same parameters as an uninterrupted run", "[optimizer]") {
   // One worker thread: gradient accumulation order (atomic float adds) is then fixed, so the two
-  // runs must agree bit for bit.
-  const std::string a = test::temp_dir("resume-a"), b = test::temp_dir("resume-b");
-  REQUIRE(run_optimize(write_tiny_job(a, 6), "", 1, true) == 0);
-  // Interrupted after 4 iterations (the checkpoint interval is 2), then resumed to 6.
-  REQUIRE(run_optimize(write_tiny_job(b, 4), "", 1, true) == 0);
-  const std::string full = write_tiny_job(b, 6);
-  REQUIRE(run_optimize(full, b + "/out", 1, true) == 0);
-  CHECK(read_all(a + "/out/final/floor.albedo.exr") == read_all(b + "/out/final/floor.albedo.exr"));
-  std::ifstream la(a + "/out/loss.csv"), lb(b + "/out/loss.csv");
-  std::string line_a, line_b;
-  int rows = 0;
-  while (std::getline(la, line_a) && std::getline(lb, line_b)) {
-    // Same iteration and loss; the wall-clock column differs.
-    CHECK(line_a.substr(0, line_a.find(',', line_a.find(',') + 1)) ==
-          line_b.substr(0, line_b.find(',', line_b.find(',') + 1)));
-    ++rows;
+  // runs must agree bit for bit. In log space too: checkpoints keep x and Adam's moments of ln x.
+  for (const std::string param_extra : {"", R"(, "parametrization": "log")"}) {
+    INFO("parameter keys: " << param_extra);
+    const std::string a = test::temp_dir("resume-a"), b = test::temp_dir("resume-b");
+    REQUIRE(run_optimize(write_tiny_job(a, 6, "", param_extra), "", 1, true) == 0);
+    // Interrupted after 4 iterations (the checkpoint interval is 2), then resumed to 6.
+    REQUIRE(run_optimize(write_tiny_job(b, 4, "", param_extra), "", 1, true) == 0);
+    const std::string full = write_tiny_job(b, 6, "", param_extra);
+    REQUIRE(run_optimize(full, b + "/out", 1, true) == 0);
+    CHECK(read_all(a + "/out/final/floor.albedo.exr") == read_all(b + "/out/final/floor.albedo.exr"));
+    std::ifstream la(a + "/out/loss.csv"), lb(b + "/out/loss.csv");
+    std::string line_a, line_b;
+    int rows = 0;
+    while (std::getline(la, line_a) && std::getline(lb, line_b)) {
+      // Same iteration and loss; the wall-clock column differs.
+      CHECK(line_a.substr(0, line_a.find(',', line_a.find(',') + 1)) ==
+            line_b.substr(0, line_b.find(',', line_b.find(',') + 1)));
+      ++rows;
+    }
+    CHECK(rows == 7);
   }
-  CHECK(rows == 7);
 }
 
 TEST_CASE("bfloat16 moments: stochastic rounding is unbiased and keeps Adam's second moment moving", "[optimizer]") {
