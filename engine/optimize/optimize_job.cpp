@@ -80,7 +80,11 @@ struct OptimizedParam {
   bool grid_large_steps = false;
   bool has_bounds = false, has_schedule = false;
   bool bounds_outside_adam = false;
-  bool wants_large_steps = false;  // λ > 0 for the parameter or one of its stages
+  // λ > 0 for the parameter or one of its stages.
+  bool wants_large_steps() const {
+    return large_steps_lambda > 0 ||
+           std::any_of(stages.begin(), stages.end(), [](const Stage& s) { return s.large_steps_lambda > 0; });
+  }
   // "parametrization": "log": Adam (and large steps) work on u = ln max(x, kLogFloor) and the
   // parameter takes x = e^u after each step, so a step changes x by a factor, not an amount: small
   // values (empty space of a density) move little, large ones fast. Bounds then hold for x.
@@ -305,10 +309,7 @@ Config parse_config(const std::string& path) {
     }
     // Meshes refuse bounds and schedules once the parameter is known to be a mesh's (resolve).
     op.has_bounds = p.has("bounds"), op.has_schedule = p.has("schedule");
-    bool stage_large_steps = false;
-    for (const Stage& st : op.stages) stage_large_steps |= st.large_steps_lambda > 0;
-    op.wants_large_steps = op.large_steps_lambda > 0 || stage_large_steps;
-    if (op.wants_large_steps || op.log_space) {
+    if (op.wants_large_steps() || op.log_space) {
       // Bounds hold for x, clamped after each step (Adam's own would clamp u = (I + λL)x or ln x).
       op.lower = a.lower, op.upper = a.upper;
       a.lower = -1e30f, a.upper = 1e30f;
@@ -566,9 +567,9 @@ class Job {
       const std::string where = c_.file + ": /parameters/" + p.name;
       if (p.log_space && mesh)
         throw InputError(where + "/parametrization: \"log\" is for positive values, not a mesh's positions");
-      if (p.wants_large_steps && !mesh && is_grid(scene_->params[p.handle])) {
+      if (p.wants_large_steps() && !mesh && is_grid(scene_->params[p.handle])) {
         p.grid_large_steps = true;
-      } else if (p.wants_large_steps) {
+      } else if (p.wants_large_steps()) {
         if (!mesh)
           throw InputError(where +
                            "/large_steps: only for a mesh's positions (<shape>.positions) or a grid "
