@@ -78,8 +78,9 @@ struct ReplayObserver {
   void emission(const EmissionRef& e, const Vec3f& weight, const Vec3f&) {
     emitter_backprop(scene, e, delta * weight, grads);
   }
-  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
-    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  template <class Blocked>
+  bool occluded(int vertex, Blocked&& query) {
+    return replay_occluded(visibility, vertex, query);
   }
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
   bool follows(int vertex) const { return vertex <= last_site; }
@@ -170,8 +171,9 @@ struct RadiativeObserver {
   void begin_shadow() {}
   void shadow_point(const ShadowPoint&) {}
   void shadow(const Vec3f&) {}
-  bool occluded(const Scene& s, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
-    return replay_occluded(s, visibility, vertex, origin, direction, tmax);
+  template <class Blocked>
+  bool occluded(int vertex, Blocked&& query) {
+    return replay_occluded(visibility, vertex, query);
   }
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
   bool follows(int vertex) const { return vertex <= last_site; }

@@ -69,9 +69,11 @@ struct NoObserver {
   void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
   void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
                const Ray&) {}
-  // The shadow-ray query of next-event estimation at surface vertex `vertex`.
-  bool occluded(const Scene& scene, int, const Vec3f& origin, const Vec3f& direction, float tmax) {
-    return scene.occluded(origin, direction, tmax);
+  // The shadow-ray query of next-event estimation at `vertex`: `blocked()` answers it by casting
+  // rays (and, through media, tracking them); a replay may answer from its first run's record.
+  template <class Blocked>
+  bool occluded(int, Blocked&& blocked) {
+    return blocked();
   }
   // Whether next-event estimation at `vertex` can contribute at all. Only a replay knows better
   // (from the first run's shadow-ray answers); it then skips the emitter sample and both evals.
@@ -145,8 +147,9 @@ struct VisibilityRecorder : NoObserver {
   void reached(int vertex, int site) {
     if (!sites || sites->at(site)) last_site = vertex;
   }
-  bool occluded(const Scene& scene, int vertex, const Vec3f& origin, const Vec3f& direction, float tmax) {
-    const bool blocked = scene.occluded(origin, direction, tmax);
+  template <class Blocked>
+  bool occluded(int vertex, Blocked&& query) {
+    const bool blocked = query();
     if (vertex < VisibilityBits::kVertices) {
       bits.queried |= uint64_t(1) << vertex;
       if (blocked) bits.blocked |= uint64_t(1) << vertex;
@@ -163,11 +166,11 @@ inline bool replay_nee_may_contribute(const VisibilityBits& bits, int vertex) {
   return (bits.queried >> vertex & 1u) && !(bits.blocked >> vertex & 1u);
 }
 
-// Replay side: answers from the recorded bits when present.
-inline bool replay_occluded(const Scene& scene, const VisibilityBits& bits, int vertex, const Vec3f& origin,
-                            const Vec3f& direction, float tmax) {
+// Replay side: answers from the recorded bits when present, else by the query.
+template <class Blocked>
+bool replay_occluded(const VisibilityBits& bits, int vertex, Blocked&& query) {
   if (vertex < VisibilityBits::kVertices && (bits.queried >> vertex & 1u)) return (bits.blocked >> vertex & 1u) != 0;
-  return scene.occluded(origin, direction, tmax);
+  return query();
 }
 
 inline float power_heuristic(float a, float b) {
@@ -191,38 +194,50 @@ struct PathStart {
   int medium = -1;       // the medium the ray starts in (the camera's), -1 = vacuum
 };
 
-// Transmittance of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking
-// through every medium on the way, crossing null surfaces (the caller has checked that no other
-// surface blocks it). One tracking stream per (path, vertex): the replay regenerates it.
+// The walk of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking through
+// every medium on the way, crossing null surfaces, up to the first surface that is not null
+// (`blocked`, transmittance 0) or the segment's end. With `find_blockers` false the caller knows
+// nothing blocks the segment and only null surfaces are looked for. One tracking stream per
+// (path, vertex): the replay regenerates it.
 struct NoShadowEvents {
   void operator()(const Medium&, const Vec3f&, float, float) const {}
 };
 
+template <class T>
+struct ShadowWalk {
+  T transmittance = T(1.f);
+  bool blocked = false;
+};
+
 template <class T, class OnPoint = NoShadowEvents>
-T shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, int medium, TrackingSampler& rng,
-                       OnPoint&& on_point = {}) {
-  T tr = T(1.f);
+ShadowWalk<T> shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, int medium,
+                                   TrackingSampler& rng, bool find_blockers, OnPoint&& on_point = {}) {
+  ShadowWalk<T> walk;
+  const bool intersect = find_blockers || scene.has_null_surfaces;
   for (int k = 0; k <= kMaxNullCrossings; ++k) {
-    const Hit hit = scene.has_null_surfaces ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
+    const Hit hit = intersect ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
+    const bool opaque = hit.mesh >= 0 && !scene.materials[size_t(scene.meshes[size_t(hit.mesh)].material)].is_null;
+    if (opaque) return {T(0.f), true};  // blocked: no need to track what lies before the blocker
     const float seg = hit.mesh < 0 ? tmax : hit.t;
     if (medium >= 0) {
       const Medium& med = scene.media[size_t(medium)];
-      tr = tr * medium_transmittance<T>(
-                    med, scene.params, o, d, seg, rng,
-                    [&](const Vec3f& x, float sigma, float majorant, bool) { on_point(med, x, sigma, majorant); });
-      if (value_of(tr) == 0.f) return tr;
+      walk.transmittance =
+          walk.transmittance * medium_transmittance<T>(med, scene.params, o, d, seg, rng,
+                                                       [&](const Vec3f& x, float sigma, float majorant, bool) {
+                                                         on_point(med, x, sigma, majorant);
+                                                       });
+      if (value_of(walk.transmittance) == 0.f) return walk;
     }
-    if (hit.mesh < 0) return tr;
+    if (hit.mesh < 0) return walk;
     const Mesh& m = scene.meshes[size_t(hit.mesh)];
-    if (!scene.materials[size_t(m.material)].is_null) return T(0.f);
     const Vec3f ng = m.face_normals[size_t(hit.triangle)];
     medium = scene.medium_after(m, d, ng, medium);
     const Vec3f next = offset_origin(o + d * hit.t, ng, d);
     tmax -= length(next - o);
     o = next;
-    if (!(tmax > 0.f)) return tr;
+    if (!(tmax > 0.f)) return walk;
   }
-  return tr;
+  return {T(0.f), true};  // as Scene::occluded: more null crossings than allowed count as blocked
 }
 
 inline TrackingSampler shadow_sampler(uint64_t path_key, int vertex) { return {path_key, vertex, 1u}; }
@@ -230,17 +245,42 @@ inline TrackingSampler shadow_sampler(uint64_t path_key, int vertex) { return {p
 // shadow_transmittance for the path loop: an active observer hears of every tentative collision
 // (a replay keeps them to differentiate the estimate without tracking the ray a second time).
 template <class T, class Observer>
-T observed_shadow_transmittance(const Scene& scene, const Vec3f& o, const Vec3f& d, float tmax, int medium,
-                                TrackingSampler& rng, Observer& observer) {
+ShadowWalk<T> observed_shadow_transmittance(const Scene& scene, const Vec3f& o, const Vec3f& d, float tmax, int medium,
+                                            TrackingSampler& rng, bool find_blockers, Observer& observer) {
   if constexpr (Observer::kActive) {
     observer.begin_shadow();
-    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng,
+    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng, find_blockers,
                                    [&](const Medium& m, const Vec3f& x, float sigma, float majorant) {
                                      observer.shadow_point(ShadowPoint{&m, x, sigma, majorant});
                                    });
   } else {
-    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng);
+    return shadow_transmittance<T>(scene, o, d, tmax, medium, rng, find_blockers);
   }
+}
+
+// The shadow ray of next-event estimation at `vertex`, from o towards the light (tmax short of
+// it), starting in `medium`: whether the light is visible and, through media, the transmittance.
+// Without media it is the observer's visibility query. With media one walk along the ray finds a
+// blocker and tracks the media together — a separate visibility query first would cast every ray
+// of the walk twice. A replay that recalls the first run's answer tracks only when the light was
+// visible, regenerating the same draws from the (path, vertex) stream.
+template <class T, class Observer>
+bool trace_shadow_ray(const Scene& scene, Observer& observer, uint64_t path_key, int vertex, const Vec3f& o,
+                      const Vec3f& d, float tmax, int medium, T& transmittance) {
+  transmittance = T(1.f);
+  if (scene.media.empty()) return !observer.occluded(vertex, [&] { return scene.occluded(o, d, tmax); });
+  TrackingSampler rng = shadow_sampler(path_key, vertex);
+  bool tracked = false;
+  const bool blocked = observer.occluded(vertex, [&] {
+    tracked = true;
+    const ShadowWalk<T> walk = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, true, observer);
+    transmittance = walk.transmittance;
+    return walk.blocked;
+  });
+  if (blocked) return false;
+  if (!tracked)
+    transmittance = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, false, observer).transmittance;
+  return true;
 }
 
 // The derivative of a ratio-tracked transmittance Π (1 − σ_t(x_i)/σ̄_i): each point contributes
@@ -326,9 +366,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             const T f = hg_eval(phase, wi_phase, es.wi);
             const float tmax =
                 std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - p) * (1.f - 1e-3f);
-            if (!observer.occluded(scene, vertex, p, es.wi, tmax)) {
-              TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
-              const T tr = observed_shadow_transmittance<T>(scene, p, es.wi, tmax, medium, shadow_rng, observer);
+            T tr = T(1.f);
+            if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, p, es.wi, tmax, medium, tr)) {
               Spectrum<T> emitted = chosen < area_count
                                         ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                         : scene.environment.eval<T>(params, es.wi);
@@ -438,17 +477,13 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           Vec3f origin = offset_origin(sp.p, sp.geometric_normal, es.wi);
           float tmax = std::isinf(es.distance) ? std::numeric_limits<float>::infinity()
                                                : length(es.point - origin) * (1.f - 1e-3f);
-          if (!observer.occluded(scene, vertex, origin, es.wi, tmax)) {
+          const int shadow_medium =
+              scene.media.empty() ? -1 : scene.medium_after(mesh, es.wi, sp.geometric_normal, medium);
+          T tr = T(1.f);  // transmittance of the shadow ray through media
+          if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, origin, es.wi, tmax, shadow_medium, tr)) {
             EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi, es.triangle, es.b1, es.b2};
             Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
                                                       : scene.environment.eval<T>(params, es.wi);
-            T tr = T(1.f);  // transmittance of the shadow ray through media
-            int shadow_medium = -1;
-            if (!scene.media.empty()) {
-              TrackingSampler shadow_rng = shadow_sampler(sampler.key(), vertex);
-              shadow_medium = scene.medium_after(mesh, es.wi, sp.geometric_normal, medium);
-              tr = observed_shadow_transmittance<T>(scene, origin, es.wi, tmax, shadow_medium, shadow_rng, observer);
-            }
             float light_pdf = es.pdf * select_pdf;
             float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
             Spectrum<T> contribution = beta * f * emitted * (tr * w_over_pdf);
