@@ -421,21 +421,26 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     }
 
     observer.reached(vertex, hit.mesh);
-    const SurfacePoint sp = scene.surface_point(hit, ray);
-    if constexpr (Observer::kActive) observer.surface(vertex, ray, hit, sp);
-    const Mesh& mesh = scene.meshes[size_t(sp.mesh)];
+    const Mesh& mesh = scene.meshes[size_t(hit.mesh)];
     const Material& material = scene.materials[size_t(mesh.material)];
-    const Vec3f wo_world = -ray.direction;
 
-    // A null surface: the ray continues unchanged, possibly into another medium.
+    // A null surface: the ray continues unchanged, possibly into another medium. Crossing needs
+    // the point and the face normal only (the same values surface_point gives), not its shading
+    // attributes.
     if (material.is_null) {
+      if constexpr (Observer::kActive) observer.surface(vertex, ray, hit, scene.surface_point(hit, ray));
       if (++null_crossings > kMaxNullCrossings) break;
-      medium = scene.medium_after(mesh, ray.direction, sp.geometric_normal, medium);
-      const Vec3f origin = offset_origin(sp.p, sp.geometric_normal, ray.direction);
+      const Vec3f ng = mesh.face_normals[size_t(hit.triangle)];
+      medium = scene.medium_after(mesh, ray.direction, ng, medium);
+      const Vec3f origin = offset_origin(ray.origin + ray.direction * hit.t, ng, ray.direction);
       travelled += length(origin - ray.origin);
       ray = Ray{origin, ray.direction};
       continue;
     }
+
+    const SurfacePoint sp = scene.surface_point(hit, ray);
+    if constexpr (Observer::kActive) observer.surface(vertex, ray, hit, sp);
+    const Vec3f wo_world = -ray.direction;
 
     // Hit an area emitter: its emission, MIS-weighted against light sampling.
     if (mesh.emitter >= 0 && visible_emitter) {
