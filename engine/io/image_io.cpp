@@ -481,6 +481,23 @@ Image read_with_plugin(const std::string& path, const std::string& format, const
 }
 }  // namespace
 
+Image box_downsample(const Image& image, int k) {
+  if (k < 1 || image.width % k != 0 || image.height % k != 0)
+    throw std::invalid_argument("box_downsample: " + std::to_string(k) + " does not divide " +
+                                std::to_string(image.width) + "x" + std::to_string(image.height));
+  Image out(image.width / k, image.height / k, image.channels);
+  const double scale = 1.0 / (double(k) * k);
+  for (int y = 0; y < out.height; ++y)
+    for (int x = 0; x < out.width; ++x)
+      for (int c = 0; c < image.channels; ++c) {
+        double sum = 0;
+        for (int dy = 0; dy < k; ++dy)
+          for (int dx = 0; dx < k; ++dx) sum += image.at(x * k + dx, y * k + dy, c);
+        out.at(x, y, c) = float(sum * scale);
+      }
+  return out;
+}
+
 float srgb_to_linear(float v) { return v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f); }
 float linear_to_srgb(float v) {
   v = std::clamp(v, 0.f, 1.f);

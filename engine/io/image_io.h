@@ -24,6 +24,10 @@ struct Image {
   size_t pixel_count() const { return size_t(width) * size_t(height); }
 };
 
+// The mean of every k×k block (width and height must be multiples of k): the image a film of
+// 1/k the resolution records, pixels being box-filtered.
+Image box_downsample(const Image& image, int k);
+
 // Reads PNG, OpenEXR, JPEG, Radiance HDR and PFM, chosen by the file's first bytes (not its
 // name). 8/16-bit files are decoded from sRGB to linear when `decode_srgb`; float files are
 // returned as stored. One channel (grey; EXR: Y) or three (RGB; EXR: R, G, B); alpha is not read. Errors (missing,

@@ -117,6 +117,13 @@ struct Config {
   int rmse_width = 0, rmse_height = 0;
   int validation_every = 10;  // completed iterations between validation losses; 0 = none
   int validation_spp = 0;     // samples per pixel of each of its two renders (0 = spp)
+  // Coarse-to-fine in image space: iterations before `until` render every view at 1/`downsample`
+  // of its resolution against the k×k box average of its target.
+  struct ImageStage {
+    int until = 0;
+    int downsample = 1;
+  };
+  std::vector<ImageStage> image_schedule;
 };
 
 std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
@@ -173,6 +180,20 @@ Config parse_config(const std::string& path) {
     c.validation_every = int(v.integer("every", 10, 0, 10000000));
     c.validation_spp = int(v.integer("spp", c.spp, 1, long(limits::kSpp)));
     v.finish();
+  }
+
+  if (const json* st = n.find("image_schedule")) {
+    if (!st->is_array()) n.fail_at("image_schedule", "expected a list of {\"until\", \"downsample\"}");
+    for (size_t i = 0; i < st->size(); ++i) {
+      Node s((*st)[i], "/image_schedule/" + std::to_string(i), c.file);
+      Config::ImageStage stage;
+      stage.until = int(s.number_required("until", 0, 1e7));
+      stage.downsample = int(s.integer("downsample", 1, 1, 64));
+      if (!c.image_schedule.empty() && stage.until <= c.image_schedule.back().until)
+        s.fail_at("until", "stages must be increasing");
+      s.finish();
+      c.image_schedule.push_back(stage);
+    }
   }
 
   Node views = n.child("views");
@@ -593,6 +614,7 @@ class Job {
       remove_stale_temporaries(c_.output);
     }
     prepare_targets();
+    prepare_image_stages();
     matplotlib_ = root_ && probe_matplotlib();
     if (!matplotlib_ && !quiet_ && !builtin_plots_chosen())
       std::fprintf(stderr, "optimize: python3-matplotlib not found: simple plots; with it, run %s %s\n",
@@ -615,6 +637,9 @@ class Job {
   std::unique_ptr<Scene> scene_;
   std::vector<int> cameras_;
   std::vector<Image> targets_;
+  // Downsampled views of the image schedule: factor → (camera index, target) per view.
+  std::map<int, std::vector<int>> scaled_cameras_;
+  std::map<int, std::vector<Image>> scaled_targets_;
   std::vector<LogRow> log_;
   std::vector<ValidationRow> validation_;
   bool matplotlib_ = false;
@@ -750,6 +775,38 @@ class Job {
     }
   }
 
+  // The image schedule's views: for each factor k, a copy of every view's camera at 1/k of its
+  // resolution and its target averaged over k×k blocks. A pixel is the box-filtered mean of the
+  // radiance over its area, so the averaged target is exactly what the smaller render estimates.
+  void prepare_image_stages() {
+    for (size_t i = 0; i < c_.image_schedule.size(); ++i) {
+      const int k = c_.image_schedule[i].downsample;
+      if (k == 1 || scaled_cameras_.count(k)) continue;
+      std::vector<int>& cams = scaled_cameras_[k];
+      std::vector<Image>& targets = scaled_targets_[k];
+      for (size_t v = 0; v < cameras_.size(); ++v) {
+        Camera cam = scene_->cameras[size_t(cameras_[v])];
+        if (cam.width % k != 0 || cam.height % k != 0)
+          throw file_error(c_.file, "/image_schedule/" + std::to_string(i) + "/downsample: " + std::to_string(k) +
+                                        " does not divide view '" + cam.name + "''s " + std::to_string(cam.width) +
+                                        "x" + std::to_string(cam.height));
+        cam.name += "/" + std::to_string(k);
+        cam.width /= k, cam.height /= k;
+        cam.update();
+        cams.push_back(int(scene_->cameras.size()));
+        scene_->cameras.push_back(cam);
+        targets.push_back(box_downsample(targets_[v], k));
+      }
+    }
+  }
+
+  // The downsampling factor of iteration `it` (1: full resolution).
+  int downsample_at(int it) const {
+    for (const auto& s : c_.image_schedule)
+      if (it < s.until) return s.downsample;
+    return 1;
+  }
+
   void apply_initial_values() {
     for (auto& p : c_.params) {
       Param& param = scene_->params[p.handle];
@@ -820,17 +877,20 @@ class Job {
         // --resume starts from the last periodic one.)
         if ((stop = dist::any(interrupted != 0))) break;
         const int v = order[size_t(k)];
+        const int factor = downsample_at(it);
+        const int camera = factor == 1 ? cameras_[size_t(v)] : scaled_cameras_.at(factor)[size_t(v)];
+        const Image& target = factor == 1 ? targets_[size_t(v)] : scaled_targets_.at(factor)[size_t(v)];
         GradientRequest rq;
         rq.loss = c_.loss;
-        rq.target = &targets_[size_t(v)];
-        rq.pass = {cameras_[size_t(v)], c_.spp, iteration_seed(c_.seed, it, v, 0), false};
+        rq.target = &target;
+        rq.pass = {camera, c_.spp, iteration_seed(c_.seed, it, v, 0), false};
         rq.adjoint_seed = c_.decorrelate ? iteration_seed(c_.seed, it, v, 1) : rq.pass.seed;
         rq.accumulate = true;
         if (c_.adjoint_spp != c_.spp) {
           // Different sample counts: the loss render and the adjoint pass are separate passes.
           Image img = render(*scene_, rq.pass);
-          LossResult lr = compute_loss(c_.loss, img, targets_[size_t(v)]);
-          PassOptions adj{cameras_[size_t(v)], c_.adjoint_spp, rq.adjoint_seed, false};
+          LossResult lr = compute_loss(c_.loss, img, target);
+          PassOptions adj{camera, c_.adjoint_spp, rq.adjoint_seed, false};
           backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
             return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};
           });

@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/core/errors.h"
+#include "engine/integrators/render.h"
 #include "engine/io/image_io.h"
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/mesh_distance.h"
@@ -457,6 +458,79 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "/parameters/floor.albedo/bounds: a log parametrization needs an upper bound > 0");
   expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "parametrization": "log"}})"),
                "/parameters/floor.positions/parametrization: \"log\" is for positive values");
+  // An image schedule: a factor that divides every view's resolution, stages in order.
+  const std::string tail = R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"],
+      "reference": {"set": {"floor.albedo": "truth.exr"}}}, )";
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 3}]})",
+               "bad.json: /image_schedule/0/downsample: 3 does not divide view 'top''s 32x32");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 2}, {"until": 2, "downsample": 4}]})",
+               "bad.json: /image_schedule/1/until: stages must be increasing");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 0}]})", "/image_schedule/0/downsample");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "factor": 2}]})", "unknown key 'factor'");
+}
+
+TEST_CASE("an image schedule renders early iterations smaller, against block means of the targets", "[optimizer]") {
+  const std::string dir = test::temp_dir("opt-image-schedule");
+  const std::string job = write_tiny_job(dir, 4);
+  // A half-resolution film records the 2×2 block means of the full one (pixels are box-filtered):
+  // the downsampled targets are exactly what the smaller renders estimate. 16² at 1024 spp
+  // against 32² at 256 spp (the same samples per area), per pixel and channel.
+  auto scene = load_scene(dir + "/scene.json");
+  scene->cameras[1].width = scene->cameras[1].height = 16;
+  scene->cameras[1].update();
+  const Image small = render(*scene, {1, 1024, 3, false});
+  scene->cameras[1].width = scene->cameras[1].height = 32;
+  scene->cameras[1].update();
+  const Image full = render(*scene, {1, 256, 4, false});
+  const Image blocks = box_downsample(full, 2);
+  REQUIRE(blocks.width == 16);
+  double mean_difference = 0, mean_value = 0, worst = 0;
+  for (size_t i = 0; i < small.data.size(); ++i) {
+    mean_difference += double(small.data[i]) - blocks.data[i];
+    mean_value += small.data[i];
+    worst = std::max(worst, std::abs(double(small.data[i]) - blocks.data[i]));
+  }
+  mean_difference /= double(small.data.size());
+  mean_value /= double(small.data.size());
+  INFO("mean 16² value " << mean_value << ", mean difference " << mean_difference << ", largest pixel difference "
+                         << worst);
+  CHECK(std::abs(mean_difference) < 2e-3 * mean_value);
+  // Pixel by pixel within the noise of 1024 samples of this direct-lit floor; a film shifted by
+  // half a small pixel would move the checker's edges (albedo 0.08 against 0.85) by far more.
+  CHECK(worst < 0.05 * mean_value);
+
+  // The job: iterations 0–2 at 16², then 32²; it still converges, and the loss of the small
+  // renders is the loss against the block means (lower noise: four times the samples per pixel area).
+  std::string text;
+  {
+    std::ifstream f(job);
+    text.assign(std::istreambuf_iterator<char>(f), {});
+  }
+  auto with_schedule = [&](const std::string& out, const std::string& schedule) {
+    std::string t = text;
+    t.replace(t.find("\"output\": \"out\""), 15, "\"output\": \"" + out + "\"");
+    t.insert(t.rfind('}'), ", \"image_schedule\": " + schedule);
+    std::ofstream(dir + "/" + out + ".json") << t;
+    return dir + "/" + out + ".json";
+  };
+  REQUIRE(run_optimize(with_schedule("scheduled", R"([{"until": 3, "downsample": 2}])"), "", 1, true) == 0);
+  REQUIRE(run_optimize(with_schedule("plain", "[]"), "", 1, true) == 0);
+  auto losses = [&](const std::string& out) {
+    std::ifstream f(dir + "/" + out + "/loss.csv");
+    std::string line;
+    std::vector<double> l;
+    std::getline(f, line);
+    while (std::getline(f, line)) l.push_back(std::stod(line.substr(line.find(',') + 1)));
+    return l;
+  };
+  const std::vector<double> scheduled = losses("scheduled"), plain = losses("plain");
+  REQUIRE(scheduled.size() == 4);
+  REQUIRE(plain.size() == 4);
+  // Iteration 0 starts from the same texture: the 16² loss is the 32² loss without most of its
+  // per-pixel noise and without the detail a 16² film averages away, so it is smaller.
+  INFO("iteration 0: 16² loss " << scheduled[0] << ", 32² loss " << plain[0]);
+  CHECK(scheduled[0] < plain[0]);
+  CHECK(scheduled[0] > 0.5 * plain[0]);  // the same images, not another problem
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
