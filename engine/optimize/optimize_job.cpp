@@ -314,6 +314,14 @@ Config parse_config(const std::string& path) {
         op.stages.push_back(stage);
       }
     }
+    if (const json* b = p.find("betas")) {
+      // Adam's moment decay rates (PyTorch's `betas`): [β1, β2], each in [0, 1).
+      if (!b->is_array() || b->size() != 2 || !(*b)[0].is_number() || !(*b)[1].is_number() ||
+          !((*b)[0].get<double>() >= 0 && (*b)[0].get<double>() < 1) ||
+          !((*b)[1].get<double>() >= 0 && (*b)[1].get<double>() < 1))
+        p.fail_at("betas", "expected [beta1, beta2], each in [0, 1)");
+      a.beta1 = (*b)[0].get<double>(), a.beta2 = (*b)[1].get<double>();
+    }
     if (p.has("warmup")) a.warmup = int(p.integer("warmup", 0, 0, 10000000));
     if (p.has("average_from")) op.average_from = int(p.integer("average_from", 0, 0, 10000000));
     if (p.has("large_steps")) {

@@ -41,6 +41,19 @@ TEST_CASE("Adam matches hand-computed steps", "[optimizer]") {
   double m1 = -0.04 / (1 - 0.81), v1 = 0.001249 / (1 - 0.998001);
   CHECK(x[1] == Approx(0.6 - 0.1 * m1 / (std::sqrt(v1) + 1e-8)).margin(1e-6));
 
+  // Other betas (the config's "betas"): β1 = 0.5, β2 = 0.9. Step 1 is ±lr whatever the betas; step
+  // 2 with g = 2 then 1: m = 0.5·1 + 0.5·1 = 1 (m̂ = 1/0.75), v = 0.9·0.4 + 0.1·1 = 0.46
+  // (v̂ = 0.46/0.19).
+  AdamSettings b;
+  b.learning_rate = 0.1;
+  b.beta1 = 0.5, b.beta2 = 0.9;
+  Adam betas(b);
+  std::vector<float> z{0.f}, z1{2.f}, z2{1.f};
+  betas.step(z, z1);
+  CHECK(z[0] == Approx(-0.1f).margin(1e-6));
+  betas.step(z, z2);
+  CHECK(z[0] == Approx(-0.1 - 0.1 * (1.0 / 0.75) / (std::sqrt(0.46 / 0.19) + 1e-8)).margin(1e-6));
+
   AdamSettings d;
   d.learning_rate = 0.1;
   d.decay = "exponential";
@@ -458,6 +471,10 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "/parameters/floor.albedo/bounds: a log parametrization needs an upper bound > 0");
   expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "parametrization": "log"}})"),
                "/parameters/floor.positions/parametrization: \"log\" is for positive values");
+  // Adam's betas: two numbers in [0, 1).
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "betas": [0.9, 1.0]}})"),
+               "/parameters/floor.albedo/betas: expected [beta1, beta2], each in [0, 1)");
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "betas": 0.9}})"), "/parameters/floor.albedo/betas");
   // An image schedule: a factor that divides every view's resolution, stages in order.
   const std::string tail = R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"],
       "reference": {"set": {"floor.albedo": "truth.exr"}}}, )";
