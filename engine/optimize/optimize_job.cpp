@@ -796,8 +796,8 @@ class Job {
         Camera cam = scene_->cameras[size_t(cameras_[v])];
         if (cam.width % k != 0 || cam.height % k != 0)
           throw file_error(c_.file, "/image_schedule/" + std::to_string(i) + "/downsample: " + std::to_string(k) +
-                                        " does not divide view '" + cam.name + "''s " + std::to_string(cam.width) +
-                                        "x" + std::to_string(cam.height));
+                                        " does not divide the " + std::to_string(cam.width) + "x" +
+                                        std::to_string(cam.height) + " of view '" + cam.name + "'");
         cam.name += "/" + std::to_string(k);
         cam.width /= k, cam.height /= k;
         cam.update();

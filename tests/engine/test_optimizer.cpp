@@ -479,7 +479,7 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
   const std::string tail = R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"],
       "reference": {"set": {"floor.albedo": "truth.exr"}}}, )";
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 3}]})",
-               "bad.json: /image_schedule/0/downsample: 3 does not divide view 'top''s 32x32");
+               "bad.json: /image_schedule/0/downsample: 3 does not divide the 32x32 of view 'top'");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 2}, {"until": 2, "downsample": 4}]})",
                "bad.json: /image_schedule/1/until: stages must be increasing");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 0}]})", "/image_schedule/0/downsample");
