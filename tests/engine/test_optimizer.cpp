@@ -516,8 +516,8 @@ TEST_CASE("an image schedule renders early iterations smaller, against block mea
   // half a small pixel would move the checker's edges (albedo 0.08 against 0.85) by far more.
   CHECK(worst < 0.05 * mean_value);
 
-  // The job: iterations 0–2 at 16², then 32²; it still converges, and the loss of the small
-  // renders is the loss against the block means (lower noise: four times the samples per pixel area).
+  // The job: iterations 0–2 at 16², then 32². The loss of a small render is taken against the
+  // block means (lower noise: four times the samples per pixel area).
   std::string text;
   {
     std::ifstream f(job);
