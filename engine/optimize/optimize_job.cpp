@@ -645,9 +645,12 @@ class Job {
   std::unique_ptr<Scene> scene_;
   std::vector<int> cameras_;
   std::vector<Image> targets_;
-  // Downsampled views of the image schedule: factor → (camera index, target) per view.
-  std::map<int, std::vector<int>> scaled_cameras_;
-  std::map<int, std::vector<Image>> scaled_targets_;
+  // Downsampled views of the image schedule, by factor: a camera index and a target per view.
+  struct ScaledViews {
+    std::vector<int> cameras;
+    std::vector<Image> targets;
+  };
+  std::map<int, ScaledViews> scaled_views_;
   std::vector<LogRow> log_;
   std::vector<ValidationRow> validation_;
   bool matplotlib_ = false;
@@ -789,9 +792,8 @@ class Job {
   void prepare_image_stages() {
     for (size_t i = 0; i < c_.image_schedule.size(); ++i) {
       const int k = c_.image_schedule[i].downsample;
-      if (k == 1 || scaled_cameras_.count(k)) continue;
-      std::vector<int>& cams = scaled_cameras_[k];
-      std::vector<Image>& targets = scaled_targets_[k];
+      if (k == 1 || scaled_views_.count(k)) continue;
+      ScaledViews& views = scaled_views_[k];
       for (size_t v = 0; v < cameras_.size(); ++v) {
         Camera cam = scene_->cameras[size_t(cameras_[v])];
         if (cam.width % k != 0 || cam.height % k != 0)
@@ -801,9 +803,9 @@ class Job {
         cam.name += "/" + std::to_string(k);
         cam.width /= k, cam.height /= k;
         cam.update();
-        cams.push_back(int(scene_->cameras.size()));
+        views.cameras.push_back(int(scene_->cameras.size()));
         scene_->cameras.push_back(cam);
-        targets.push_back(box_downsample(targets_[v], k));
+        views.targets.push_back(box_downsample(targets_[v], k));
       }
     }
   }
@@ -886,8 +888,8 @@ class Job {
         if ((stop = dist::any(interrupted != 0))) break;
         const int v = order[size_t(k)];
         const int factor = downsample_at(it);
-        const int camera = factor == 1 ? cameras_[size_t(v)] : scaled_cameras_.at(factor)[size_t(v)];
-        const Image& target = factor == 1 ? targets_[size_t(v)] : scaled_targets_.at(factor)[size_t(v)];
+        const int camera = factor == 1 ? cameras_[size_t(v)] : scaled_views_.at(factor).cameras[size_t(v)];
+        const Image& target = factor == 1 ? targets_[size_t(v)] : scaled_views_.at(factor).targets[size_t(v)];
         GradientRequest rq;
         rq.loss = c_.loss;
         rq.target = &target;
