@@ -69,4 +69,17 @@ LossResult compute_loss(LossType type, const Image& image, const Image& target) 
   return r;
 }
 
+LossResult compute_block_loss(LossType type, const Image& image, const Image& block_target, int k) {
+  if (k < 1 || image.width % k != 0 || image.height % k != 0)
+    throw InputError("loss blocks of " + std::to_string(k) + " do not divide the " + std::to_string(image.width) + "x" +
+                     std::to_string(image.height) + " render");
+  LossResult blocks = compute_loss(type, box_downsample(image, k), block_target);
+  LossResult r{blocks.value, Image(image.width, image.height, 3)};
+  const float share = 1.f / float(k * k);
+  for (int y = 0; y < image.height; ++y)
+    for (int x = 0; x < image.width; ++x)
+      for (int c = 0; c < 3; ++c) r.adjoint.at(x, y, c) = blocks.adjoint.at(x / k, y / k, c) * share;
+  return r;
+}
+
 }  // namespace bl

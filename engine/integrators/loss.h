@@ -4,8 +4,8 @@
 // moment the pixel has been rendered.
 #include <string>
 
-#include "engine/io/image_io.h"
 #include "engine/core/math.h"
+#include "engine/io/image_io.h"
 
 namespace bl {
 
@@ -27,5 +27,10 @@ struct LossResult {
   Image adjoint;  // δI
 };
 LossResult compute_loss(LossType type, const Image& image, const Image& target);
+
+// A low-pass loss: the loss of the k×k block means of `image` against `block_target` (the target's
+// block means, (W/k)×(H/k)). The adjoint is full-size: every pixel of a block gets the block's δ / k²,
+// so a render's Monte Carlo noise is averaged over k² pixels before it enters δI.
+LossResult compute_block_loss(LossType type, const Image& image, const Image& block_target, int k);
 
 }  // namespace bl

@@ -124,6 +124,9 @@ struct Config {
     int downsample = 1;
   };
   std::vector<ImageStage> image_schedule;
+  // A low-pass loss: the loss compares k×k block means of the render and the target, so a
+  // render's Monte Carlo noise is averaged over k² pixels before it enters δI.
+  int loss_downsample = 1;
 };
 
 std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
@@ -159,6 +162,7 @@ Config parse_config(const std::string& path) {
   c.spp = int(n.integer("spp", 4, 1, long(limits::kSpp)));
   c.adjoint_spp = int(n.integer("adjoint_spp", c.spp, 1, long(limits::kSpp)));
   c.decorrelate = n.boolean("decorrelate", true);
+  c.loss_downsample = int(n.integer("loss_downsample", 1, 1, 64));
   c.loss = n.has("loss") ? parse_loss(n.string("loss")) : LossType::L2;
   c.checkpoint_every = int(n.number("checkpoint_every", 10, 1, 1e7));
   c.snapshot_every = int(n.number("snapshot_every", 25, 1, 1e7));
@@ -651,6 +655,9 @@ class Job {
     std::vector<Image> targets;
   };
   std::map<int, ScaledViews> scaled_views_;
+  // With `loss_downsample` k > 1: by image-schedule factor (1 included), every view's target at
+  // that factor averaged over k×k blocks, what the loss compares the block means of a render to.
+  std::map<int, std::vector<Image>> loss_targets_;
   std::vector<LogRow> log_;
   std::vector<ValidationRow> validation_;
   bool matplotlib_ = false;
@@ -808,6 +815,23 @@ class Job {
         views.targets.push_back(box_downsample(targets_[v], k));
       }
     }
+    const int k = c_.loss_downsample;
+    if (k == 1) return;
+    std::vector<int> factors{1};
+    for (const auto& s : c_.image_schedule) factors.push_back(s.downsample);
+    for (const int f : factors) {
+      if (loss_targets_.count(f)) continue;
+      std::vector<Image>& targets = loss_targets_[f];
+      for (size_t v = 0; v < cameras_.size(); ++v) {
+        const Image& t = f == 1 ? targets_[v] : scaled_views_.at(f).targets[v];
+        if (t.width % k != 0 || t.height % k != 0)
+          throw file_error(c_.file, "/loss_downsample: " + std::to_string(k) + " does not divide the " +
+                                        std::to_string(t.width) + "x" + std::to_string(t.height) + " of view '" +
+                                        scene_->cameras[size_t(cameras_[v])].name + "'" +
+                                        (f == 1 ? "" : " at image-schedule downsample " + std::to_string(f)));
+        targets.push_back(box_downsample(t, k));
+      }
+    }
   }
 
   // The downsampling factor of iteration `it` (1: full resolution).
@@ -896,10 +920,13 @@ class Job {
         rq.pass = {camera, c_.spp, iteration_seed(c_.seed, it, v, 0), false};
         rq.adjoint_seed = c_.decorrelate ? iteration_seed(c_.seed, it, v, 1) : rq.pass.seed;
         rq.accumulate = true;
-        if (c_.adjoint_spp != c_.spp) {
-          // Different sample counts: the loss render and the adjoint pass are separate passes.
+        if (c_.loss_downsample > 1 || c_.adjoint_spp != c_.spp) {
+          // The loss render and the adjoint pass are separate passes: different sample counts, or
+          // the loss of block means, which needs every pixel of a block before any δ is known.
           Image img = render(*scene_, rq.pass);
-          LossResult lr = compute_loss(c_.loss, img, target);
+          LossResult lr = c_.loss_downsample > 1 ? compute_block_loss(c_.loss, img, loss_targets_.at(factor)[size_t(v)],
+                                                                      c_.loss_downsample)
+                                                 : compute_loss(c_.loss, img, target);
           PassOptions adj{camera, c_.adjoint_spp, rq.adjoint_seed, false};
           backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
             return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};

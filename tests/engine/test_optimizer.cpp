@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/core/errors.h"
+#include "engine/integrators/loss.h"
 #include "engine/integrators/render.h"
 #include "engine/io/image_io.h"
 #include "engine/optimize/large_steps.h"
@@ -484,6 +485,12 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "bad.json: /image_schedule/1/until: stages must be increasing");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 0}]})", "/image_schedule/0/downsample");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "factor": 2}]})", "unknown key 'factor'");
+  // A block-mean loss: blocks that divide every render, at every image-schedule factor.
+  expect_error(head + tail + R"("loss_downsample": 3})",
+               "bad.json: /loss_downsample: 3 does not divide the 32x32 of view 'top'");
+  expect_error(head + tail + R"("loss_downsample": 32, "image_schedule": [{"until": 2, "downsample": 2}]})",
+               "bad.json: /loss_downsample: 32 does not divide the 16x16 of view 'top' at image-schedule downsample 2");
+  expect_error(head + tail + R"("loss_downsample": 0})", "/loss_downsample");
 }
 
 TEST_CASE("an image schedule renders early iterations smaller, against block means of the targets", "[optimizer]") {
@@ -548,6 +555,102 @@ TEST_CASE("an image schedule renders early iterations smaller, against block mea
   INFO("iteration 0: 16² loss " << scheduled[0] << ", 32² loss " << plain[0]);
   CHECK(scheduled[0] < plain[0]);
   CHECK(scheduled[0] > 0.5 * plain[0]);  // the same images, not another problem
+}
+
+TEST_CASE("a block-mean loss: its adjoint is its derivative, per pixel and through a render", "[optimizer]") {
+  // Per pixel: the value is the loss of the block means, and the adjoint its central differences.
+  Image image(6, 4, 3), target(6, 4, 3);
+  uint64_t state = 12345;
+  auto uniform = [&] { return float((state = mix64(state)) >> 40) / float(1 << 24); };
+  for (auto& v : image.data) v = 0.2f + uniform();
+  for (auto& v : target.data) v = 0.2f + uniform();
+  const Image block_target = box_downsample(target, 2);
+  for (LossType type : {LossType::L2, LossType::L1, LossType::RelativeL2}) {
+    const LossResult r = compute_block_loss(type, image, block_target, 2);
+    CHECK(r.value == Approx(compute_loss(type, box_downsample(image, 2), block_target).value).epsilon(1e-12));
+    REQUIRE(r.adjoint.width == 6);
+    REQUIRE(r.adjoint.height == 4);
+    for (size_t i = 0; i < image.data.size(); ++i) {
+      const float h = 1e-3f;
+      Image plus = image, minus = image;
+      plus.data[i] += h, minus.data[i] -= h;
+      const double fd = (compute_block_loss(type, plus, block_target, 2).value -
+                         compute_block_loss(type, minus, block_target, 2).value) /
+                        (double(plus.data[i]) - double(minus.data[i]));
+      INFO(loss_name(type) << " value " << i);
+      CHECK(r.adjoint.data[i] == Approx(fd).epsilon(2e-3).margin(1e-7));
+    }
+  }
+  CHECK_THROWS_AS(compute_block_loss(LossType::L2, image, block_target, 4), InputError);  // 4 does not divide 6x4
+
+  // Through a render: with equal seeds the adjoint pass differentiates the very render it replays,
+  // so δI of the block loss gives its directional derivative along a texture perturbation (the
+  // albedo does not move sampling) — a δI sent to the wrong pixels would not.
+  const std::string dir = test::temp_dir("opt-block-loss");
+  write_tiny_job(dir, 1);
+  auto scene = load_scene(dir + "/scene.json");
+  Image reference = render(*scene, {1, 64, 5, false});
+  const Image blocks = box_downsample(reference, 4);
+  const int albedo = scene->params.find("floor.albedo");
+  REQUIRE(albedo >= 0);
+  scene->params.require_grad({"floor.albedo"});
+  std::vector<float> direction(scene->params[albedo].size());
+  for (auto& d : direction) d = uniform() - 0.5f;
+  for (auto& v : scene->params[albedo].value) v = 0.3f + 0.4f * uniform();
+  const std::vector<float> start = scene->params[albedo].value;
+  const PassOptions pass{1, 4, 9, false};
+  const LossResult r = compute_block_loss(LossType::L2, render(*scene, pass), blocks, 4);
+  scene->params.zero_grad();
+  backward(*scene, pass, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
+    return Vec3f{r.adjoint.data[p * 3], r.adjoint.data[p * 3 + 1], r.adjoint.data[p * 3 + 2]};
+  });
+  double analytic = 0;
+  for (size_t i = 0; i < direction.size(); ++i) analytic += double(scene->params[albedo].grad[i]) * direction[i];
+  auto loss_at = [&](float t) {
+    for (size_t i = 0; i < direction.size(); ++i) scene->params[albedo].value[i] = start[i] + t * direction[i];
+    return compute_block_loss(LossType::L2, render(*scene, pass), blocks, 4).value;
+  };
+  const double fd = (loss_at(1e-2f) - loss_at(-1e-2f)) / 2e-2;
+  INFO("directional derivative: adjoint " << analytic << ", same-seed central difference " << fd);
+  CHECK(std::abs(fd) > 1e-6);
+  CHECK(analytic == Approx(fd).epsilon(2e-3));
+
+  // In the job: started at the truth and barely moved, each iteration's loss is the renders' own
+  // noise, independent from pixel to pixel; 2×2 block means carry a quarter of its variance.
+  const std::string job_dir = test::temp_dir("opt-block-loss-job");
+  const std::string job = write_tiny_job(job_dir, 6);
+  std::string text;
+  {
+    std::ifstream f(job);
+    text.assign(std::istreambuf_iterator<char>(f), {});
+  }
+  const std::string from = R"("lr": 0.05, "bounds": [0, 1]})",
+                    to = R"("lr": 1e-9, "bounds": [0, 1], "init": "truth.exr"})";
+  REQUIRE(text.find(from) != std::string::npos);
+  text.replace(text.find(from), from.size(), to);
+  auto with_blocks = [&](const std::string& out, int k) {
+    std::string t = text;
+    t.replace(t.find("\"output\": \"out\""), 15, "\"output\": \"" + out + "\"");
+    t.insert(t.rfind('}'), ", \"loss_downsample\": " + std::to_string(k));
+    std::ofstream(job_dir + "/" + out + ".json") << t;
+    return job_dir + "/" + out + ".json";
+  };
+  REQUIRE(run_optimize(with_blocks("blocks", 2), "", 0, true) == 0);
+  REQUIRE(run_optimize(with_blocks("pixels", 1), "", 0, true) == 0);
+  auto mean_loss = [&](const std::string& out) {
+    std::ifstream f(job_dir + "/" + out + "/loss.csv");
+    std::string line;
+    std::getline(f, line);
+    double sum = 0;
+    int n = 0;
+    while (std::getline(f, line)) sum += std::stod(line.substr(line.find(',') + 1)), ++n;
+    REQUIRE(n == 6);  // one row per iteration
+    return sum / n;
+  };
+  const double blocks_loss = mean_loss("blocks"), pixels_loss = mean_loss("pixels");
+  INFO("mean loss at the truth: 2x2 blocks " << blocks_loss << ", pixels " << pixels_loss);
+  CHECK(blocks_loss > 0.15 * pixels_loss);
+  CHECK(blocks_loss < 0.4 * pixels_loss);
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
