@@ -122,6 +122,7 @@ struct Config {
   struct ImageStage {
     int until = 0;
     int downsample = 1;
+    int views_per_iteration = -1;  // -1: the top-level setting
   };
   std::vector<ImageStage> image_schedule;
   // A low-pass loss: the loss compares k×k block means of the render and the target, so a
@@ -187,12 +188,14 @@ Config parse_config(const std::string& path) {
   }
 
   if (const json* st = n.find("image_schedule")) {
-    if (!st->is_array()) n.fail_at("image_schedule", "expected a list of {\"until\", \"downsample\"}");
+    if (!st->is_array())
+      n.fail_at("image_schedule", "expected a list of {\"until\", \"downsample\", \"views_per_iteration\"}");
     for (size_t i = 0; i < st->size(); ++i) {
       Node s((*st)[i], "/image_schedule/" + std::to_string(i), c.file);
       Config::ImageStage stage;
       stage.until = int(s.number_required("until", 0, 1e7));
       stage.downsample = int(s.integer("downsample", 1, 1, 64));
+      stage.views_per_iteration = int(s.integer("views_per_iteration", -1, 0, 10000));
       if (!c.image_schedule.empty() && stage.until <= c.image_schedule.back().until)
         s.fail_at("until", "stages must be increasing");
       s.finish();
@@ -841,6 +844,13 @@ class Job {
     return 1;
   }
 
+  // The views rendered by iteration `it` (0: all).
+  int views_at(int it) const {
+    for (const auto& s : c_.image_schedule)
+      if (it < s.until) return s.views_per_iteration >= 0 ? s.views_per_iteration : c_.views_per_iteration;
+    return c_.views_per_iteration;
+  }
+
   void apply_initial_values() {
     for (auto& p : c_.params) {
       Param& param = scene_->params[p.handle];
@@ -882,7 +892,6 @@ class Job {
       return elapsed_before_ + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     };
     const int view_count = int(cameras_.size());
-    const int per_iteration = c_.views_per_iteration > 0 ? std::min(c_.views_per_iteration, view_count) : view_count;
     validate(start, seconds);  // the starting point (already recorded when resuming)
     for (int it = start; it < c_.iterations; ++it) {
       for (auto& p : c_.params) {
@@ -902,6 +911,8 @@ class Job {
       for (int v = 0; v < view_count; ++v) order[size_t(v)] = v;
       for (int v = view_count - 1; v > 0; --v)
         std::swap(order[size_t(v)], order[mix64(c_.seed + uint64_t(it) * 131 + uint64_t(v)) % uint64_t(v + 1)]);
+      const int views = views_at(it);
+      const int per_iteration = views > 0 ? std::min(views, view_count) : view_count;
       double loss = 0;
       Image first_view;
       bool stop = false;
@@ -1107,8 +1118,12 @@ class Job {
            fmt(initial_rmse_ >= 0 ? initial_rmse_ : log_.front().rmse) + "</td><td>" + fmt(log_.back().rmse) +
            "</td></tr>\n";
     h += "<tr><td>views</td><td colspan=\"2\">" + std::to_string(cameras_.size()) + " (" +
-         std::to_string(c_.views_per_iteration > 0 ? c_.views_per_iteration : int(cameras_.size())) +
-         " per iteration), " + std::to_string(c_.spp) + " + " + std::to_string(c_.adjoint_spp) + " spp</td></tr>\n";
+         std::to_string(c_.views_per_iteration > 0 ? c_.views_per_iteration : int(cameras_.size())) + " per iteration" +
+         (std::any_of(c_.image_schedule.begin(), c_.image_schedule.end(),
+                      [](const Config::ImageStage& s) { return s.views_per_iteration >= 0; })
+              ? " after the image schedule"
+              : "") +
+         "), " + std::to_string(c_.spp) + " + " + std::to_string(c_.adjoint_spp) + " spp</td></tr>\n";
     // The plots are shown smaller than drawn: pixelated (nearest-neighbour) scaling would drop
     // their one-pixel strokes (minus signs, grid lines), so only the renders keep it.
     h += "</table>\n<h2>Curves</h2>\n<div class=\"curves\">\n";

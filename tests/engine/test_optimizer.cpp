@@ -485,6 +485,8 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "bad.json: /image_schedule/1/until: stages must be increasing");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 0}]})", "/image_schedule/0/downsample");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "factor": 2}]})", "unknown key 'factor'");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "views_per_iteration": -1}]})",
+               "/image_schedule/0/views_per_iteration");
   // A block-mean loss: blocks that divide every render, at every image-schedule factor.
   expect_error(head + tail + R"("loss_downsample": 3})",
                "bad.json: /loss_downsample: 3 does not divide the 32x32 of view 'top'");
@@ -555,6 +557,27 @@ TEST_CASE("an image schedule renders early iterations smaller, against block mea
   INFO("iteration 0: 16² loss " << scheduled[0] << ", 32² loss " << plain[0]);
   CHECK(scheduled[0] < plain[0]);
   CHECK(scheduled[0] > 0.5 * plain[0]);  // the same images, not another problem
+
+  // A stage's views_per_iteration: iterations 0–1 render one view, as a job of one view per
+  // iteration does (the same views and seeds: the same losses, bit for bit on one thread); from
+  // iteration 2 all three views, as the plain job does at its start.
+  auto with_views = [&](const std::string& out, const std::string& extra) {
+    std::string t = text;
+    t.replace(t.find("\"output\": \"out\""), 15, "\"output\": \"" + out + "\"");
+    t.insert(t.rfind('}'), extra);
+    std::ofstream(dir + "/" + out + ".json") << t;
+    return dir + "/" + out + ".json";
+  };
+  REQUIRE(run_optimize(with_views("staged", R"(, "image_schedule": [{"until": 2, "views_per_iteration": 1}])"), "", 1,
+                       true) == 0);
+  REQUIRE(run_optimize(with_views("one", R"(, "views_per_iteration": 1)"), "", 1, true) == 0);
+  const std::vector<double> staged = losses("staged"), one = losses("one");
+  REQUIRE(staged.size() == 4);
+  REQUIRE(one.size() == 4);
+  CHECK(staged[0] == one[0]);
+  CHECK(staged[1] == one[1]);
+  CHECK(staged[0] != plain[0]);  // one view's loss, not the mean over three
+  CHECK(staged[2] != one[2]);
 }
 
 TEST_CASE("a block-mean loss: its adjoint is its derivative, per pixel and through a render", "[optimizer]") {
