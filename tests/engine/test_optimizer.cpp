@@ -109,6 +109,21 @@ std::string write_tiny_job(const std::string& dir, int iterations, const std::st
   return dir + "/job.json";
 }
 
+// The tiny job's config text, started at the ground truth with a learning rate too small to move
+// it: the loss of each iteration is then the renders' own Monte Carlo noise.
+std::string tiny_job_at_truth(const std::string& dir, int iterations, const std::string& extra = "") {
+  std::string text;
+  {
+    std::ifstream f(write_tiny_job(dir, iterations, extra));
+    text.assign(std::istreambuf_iterator<char>(f), {});
+  }
+  const std::string from = R"("lr": 0.05, "bounds": [0, 1]})",
+                    to = R"("lr": 1e-9, "bounds": [0, 1], "init": "truth.exr"})";
+  REQUIRE(text.find(from) != std::string::npos);
+  text.replace(text.find(from), from.size(), to);
+  return text;
+}
+
 nlohmann::json read_json(const std::string& path) {
   std::ifstream f(path);
   return nlohmann::json::parse(f);
@@ -180,16 +195,8 @@ TEST_CASE("the validation loss leaves out the renders' own Monte Carlo noise", "
   // variance of its 8-spp render, while the validation loss, (I_a − T)(I_b − T) over two
   // independent renders, estimates only the expected render's distance to the 64-spp target.
   const std::string dir = test::temp_dir("validation");
-  const std::string job = write_tiny_job(dir, 4, R"(, "validation": {"every": 2, "spp": 8})");
-  std::string text;
-  {
-    std::ifstream f(job);
-    text.assign(std::istreambuf_iterator<char>(f), {});
-  }
-  const std::string from = R"("lr": 0.05, "bounds": [0, 1]})",
-                    to = R"("lr": 1e-9, "bounds": [0, 1], "init": "truth.exr"})";
-  REQUIRE(text.find(from) != std::string::npos);
-  text.replace(text.find(from), from.size(), to);
+  const std::string job = dir + "/job.json";
+  const std::string text = tiny_job_at_truth(dir, 4, R"(, "validation": {"every": 2, "spp": 8})");
   std::ofstream(job) << text;
   REQUIRE(run_optimize(job, "", 0, true) == 0);
   auto summary = read_json(dir + "/out/summary.json");
@@ -641,16 +648,7 @@ TEST_CASE("a block-mean loss: its adjoint is its derivative, per pixel and throu
   // In the job: started at the truth and barely moved, each iteration's loss is the renders' own
   // noise, independent from pixel to pixel; 2×2 block means carry a quarter of its variance.
   const std::string job_dir = test::temp_dir("opt-block-loss-job");
-  const std::string job = write_tiny_job(job_dir, 6);
-  std::string text;
-  {
-    std::ifstream f(job);
-    text.assign(std::istreambuf_iterator<char>(f), {});
-  }
-  const std::string from = R"("lr": 0.05, "bounds": [0, 1]})",
-                    to = R"("lr": 1e-9, "bounds": [0, 1], "init": "truth.exr"})";
-  REQUIRE(text.find(from) != std::string::npos);
-  text.replace(text.find(from), from.size(), to);
+  const std::string text = tiny_job_at_truth(job_dir, 6);
   auto with_blocks = [&](const std::string& out, int k) {
     std::string t = text;
     t.replace(t.find("\"output\": \"out\""), 15, "\"output\": \"" + out + "\"");
