@@ -69,11 +69,14 @@ LossResult compute_loss(LossType type, const Image& image, const Image& target) 
   return r;
 }
 
-LossResult compute_block_loss(LossType type, const Image& image, const Image& block_target, int k) {
+LossResult compute_block_loss(LossType type, const Image& image, const Image& target, int k) {
+  if (image.width != target.width || image.height != target.height)
+    throw InputError("target is " + std::to_string(target.width) + "x" + std::to_string(target.height) +
+                     " but the render is " + std::to_string(image.width) + "x" + std::to_string(image.height));
   if (k < 1 || image.width % k != 0 || image.height % k != 0)
     throw InputError("loss blocks of " + std::to_string(k) + " do not divide the " + std::to_string(image.width) + "x" +
                      std::to_string(image.height) + " render");
-  LossResult blocks = compute_loss(type, box_downsample(image, k), block_target);
+  LossResult blocks = compute_loss(type, box_downsample(image, k), box_downsample(target, k));
   LossResult r{blocks.value, Image(image.width, image.height, 3)};
   const float share = 1.f / float(k * k);
   for (int y = 0; y < image.height; ++y)

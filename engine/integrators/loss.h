@@ -28,9 +28,9 @@ struct LossResult {
 };
 LossResult compute_loss(LossType type, const Image& image, const Image& target);
 
-// A low-pass loss: the loss of the k×k block means of `image` against `block_target` (the target's
-// block means, (W/k)×(H/k)). The adjoint is full-size: every pixel of a block gets the block's δ / k²,
-// so a render's Monte Carlo noise is averaged over k² pixels before it enters δI.
-LossResult compute_block_loss(LossType type, const Image& image, const Image& block_target, int k);
+// A low-pass loss: the loss of the k×k block means of `image` against those of `target`. The
+// adjoint is full-size: every pixel of a block gets the block's δ / k², so a render's Monte Carlo
+// noise is averaged over k² pixels before it enters δI.
+LossResult compute_block_loss(LossType type, const Image& image, const Image& target, int k);
 
 }  // namespace bl

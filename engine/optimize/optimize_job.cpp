@@ -658,9 +658,6 @@ class Job {
     std::vector<Image> targets;
   };
   std::map<int, ScaledViews> scaled_views_;
-  // With `loss_downsample` k > 1: by image-schedule factor (1 included), every view's target at
-  // that factor averaged over k×k blocks, what the loss compares the block means of a render to.
-  std::map<int, std::vector<Image>> loss_targets_;
   std::vector<LogRow> log_;
   std::vector<ValidationRow> validation_;
   bool matplotlib_ = false;
@@ -818,23 +815,19 @@ class Job {
         views.targets.push_back(box_downsample(targets_[v], k));
       }
     }
+    // The block loss's k must divide every render, at every factor of the image schedule.
     const int k = c_.loss_downsample;
-    if (k == 1) return;
     std::vector<int> factors{1};
     for (const auto& s : c_.image_schedule) factors.push_back(s.downsample);
-    for (const int f : factors) {
-      if (loss_targets_.count(f)) continue;
-      std::vector<Image>& targets = loss_targets_[f];
+    for (const int f : factors)
       for (size_t v = 0; v < cameras_.size(); ++v) {
-        const Image& t = f == 1 ? targets_[v] : scaled_views_.at(f).targets[v];
-        if (t.width % k != 0 || t.height % k != 0)
+        const Camera& cam = scene_->cameras[size_t(f == 1 ? cameras_[v] : scaled_views_.at(f).cameras[v])];
+        if (cam.width % k != 0 || cam.height % k != 0)
           throw file_error(c_.file, "/loss_downsample: " + std::to_string(k) + " does not divide the " +
-                                        std::to_string(t.width) + "x" + std::to_string(t.height) + " of view '" +
+                                        std::to_string(cam.width) + "x" + std::to_string(cam.height) + " of view '" +
                                         scene_->cameras[size_t(cameras_[v])].name + "'" +
                                         (f == 1 ? "" : " at image-schedule downsample " + std::to_string(f)));
-        targets.push_back(box_downsample(t, k));
       }
-    }
   }
 
   // The downsampling factor of iteration `it` (1: full resolution).
@@ -935,8 +928,7 @@ class Job {
           // The loss render and the adjoint pass are separate passes: different sample counts, or
           // the loss of block means, which needs every pixel of a block before any δ is known.
           Image img = render(*scene_, rq.pass);
-          LossResult lr = c_.loss_downsample > 1 ? compute_block_loss(c_.loss, img, loss_targets_.at(factor)[size_t(v)],
-                                                                      c_.loss_downsample)
+          LossResult lr = c_.loss_downsample > 1 ? compute_block_loss(c_.loss, img, target, c_.loss_downsample)
                                                  : compute_loss(c_.loss, img, target);
           PassOptions adj{camera, c_.adjoint_spp, rq.adjoint_seed, false};
           backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
