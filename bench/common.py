@@ -57,12 +57,12 @@ def _sample_anon(pid, peak, stop):
         stop.wait(0.01)
 
 
-def run_measured(cmd, check=True):
+def run_measured(cmd, check=True, env=None):
     """Runs cmd in a fresh process; returns seconds, peak RSS (MB) of that process (getrusage), its
     peak private anonymous memory (MB, /proc RssAnon sampled every 10 ms), outputs."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         start = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, stderr=err)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, env=env)
         peak, stop = [0, 0], threading.Event()
         sampler = threading.Thread(target=_sample_anon, args=(proc.pid, peak, stop), daemon=True)
         sampler.start()

@@ -1,6 +1,9 @@
 #include "engine/core/params.h"
 
+#include <algorithm>
 #include <cstdlib>
+
+#include <tbb/global_control.h>
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
@@ -31,13 +34,27 @@ std::string ParamStore::shape_string(int handle) const {
   return s + "]";
 }
 
+namespace {
+size_t env_size(const char* name, size_t fallback) {
+  const char* v = std::getenv(name);
+  return v ? size_t(std::strtoull(v, nullptr, 10)) : fallback;
+}
+}  // namespace
+
 size_t small_param_limit() {
-  static const size_t limit = [] {
-    const char* v = std::getenv("BACKLIGHT_SMALL_PARAM_LIMIT");
-    return v ? size_t(std::strtoull(v, nullptr, 10)) : kSmallParamLimit;
-  }();
+  static const size_t limit = env_size("BACKLIGHT_SMALL_PARAM_LIMIT", kSmallParamLimit);
   return limit;
 }
+
+namespace {
+std::atomic<size_t>& budget_setting() {
+  static std::atomic<size_t> budget{env_size("BACKLIGHT_LOCAL_GRADIENT_BUDGET", kLocalGradientBudget)};
+  return budget;
+}
+}  // namespace
+
+size_t local_gradient_budget() { return budget_setting().load(); }
+void set_local_gradient_budget(size_t bytes) { budget_setting().store(bytes); }
 
 void ParamStore::require_grad(const std::vector<std::string>& names) {
   for (auto& p : params_) p.requires_grad = names.empty() && !p.geometry;
@@ -46,16 +63,31 @@ void ParamStore::require_grad(const std::vector<std::string>& names) {
     if (h < 0) throw InputError("unknown parameter '" + n + "' (see `backlight params`)");
     params_[size_t(h)].requires_grad = true;
   }
-  small_total_ = 0;
   size_t flat = 0;
   for (auto& p : params_) {
-    p.small = p.size() <= small_param_limit();
-    p.small_offset = p.small ? small_total_ : 0;
-    if (p.small) small_total_ += p.size();
     p.tape_offset = flat;
     flat += p.size();
   }
   zero_grad();
+}
+
+GradientLayout::GradientLayout(const ParamStore& store, size_t threads) {
+  offset.assign(store.count(), kAtomic);
+  size_t budget_left = local_gradient_budget();
+  const size_t per_value = sizeof(double) * std::max<size_t>(threads, 1);
+  for (size_t h = 0; h < store.count(); ++h) {
+    const Param& p = store[int(h)];
+    if (!p.requires_grad) continue;
+    bool local = p.size() <= small_param_limit();
+    if (!local && p.size() <= budget_left / per_value) {
+      local = true;
+      budget_left -= p.size() * per_value;
+    }
+    if (local) {
+      offset[h] = total;
+      total += p.size();
+    }
+  }
 }
 
 bool ParamStore::wants_geometry() const {
@@ -68,13 +100,22 @@ void ParamStore::zero_grad() {
   for (auto& p : params_) p.grad.assign(p.value.size(), 0.f);
 }
 
+GradientSink::GradientSink(ParamStore& store)
+    : store_(store),
+      layout_(store, size_t(tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism))),
+      per_thread_([this] { return GradientAccumulator(&store_, &layout_); }) {}
+
 void GradientSink::reduce() {
-  std::vector<double> total(store_.small_total(), 0.0);
+  std::vector<double> total(layout_.total, 0.0);
   for (auto& acc : per_thread_)
-    for (size_t i = 0; i < total.size(); ++i) total[i] += acc.small()[i];
-  for (auto& p : store_.all())
-    if (p.small && p.requires_grad)
-      for (size_t i = 0; i < p.size(); ++i) p.grad[i] += float(total[p.small_offset + i]);
+    for (size_t i = 0; i < total.size(); ++i) total[i] += acc.local()[i];
+  auto& params = store_.all();
+  for (size_t h = 0; h < params.size(); ++h) {
+    if (!layout_.local(int(h))) continue;
+    Param& p = params[h];
+    const double* sum = total.data() + layout_.offset[h];
+    for (size_t i = 0; i < p.size(); ++i) p.grad[i] += float(sum[i]);
+  }
   per_thread_.clear();
 }
 

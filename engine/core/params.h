@@ -24,10 +24,6 @@ struct Param {
   // A shape's or camera's pose or vertex positions: differentiated only when named (the default
   // "all parameters" of a gradient run means all appearance parameters).
   bool geometry = false;
-  // Where gradients accumulate: small buffers (touched by every path) use per-thread double
-  // accumulators reduced once; large ones take lock-free atomic float adds.
-  bool small = false;
-  size_t small_offset = 0;
   size_t tape_offset = 0;  // index of element 0 in the flat numbering used by the taped mode
 
   size_t size() const { return value.size(); }
@@ -37,11 +33,20 @@ struct Param {
   int channels() const { return shape.back(); }
 };
 
-// Buffers of at most this many floats accumulate per thread in double precision. The
-// environment variable BACKLIGHT_SMALL_PARAM_LIMIT overrides it, for bench/gradient only (it
-// measures both strategies on the same parameter).
+// Where a pass's gradients accumulate (GradientLayout): per-thread double sums, reduced once at
+// the end of the pass, for buffers of at most kSmallParamLimit floats (touched by every path,
+// they would serialise atomics and lose low bits) and for larger buffers as long as their
+// per-thread copies fit kLocalGradientBudget bytes over all threads (a 64³ density grid on up to
+// 4 threads, 2 MB each: no atomic per trilinear tap, 8% of a volume gradient pass); lock-free
+// atomic float adds into Param::grad for the rest (textures, 128³ grids and up), whose memory
+// must not multiply with the thread count. The environment variables
+// BACKLIGHT_SMALL_PARAM_LIMIT and BACKLIGHT_LOCAL_GRADIENT_BUDGET override the two, for
+// bench/gradient and bench/volume only (they measure both strategies on the same parameter).
 inline constexpr size_t kSmallParamLimit = 64;
+inline constexpr size_t kLocalGradientBudget = size_t(8) << 20;
 size_t small_param_limit();
+size_t local_gradient_budget();
+void set_local_gradient_budget(size_t bytes);  // for tests: 0 sends every large buffer to atomics
 
 class ParamStore {
  public:
@@ -60,48 +65,78 @@ class ParamStore {
   void require_grad(const std::vector<std::string>& names);  // empty = all but geometry
   bool wants_geometry() const;                               // a geometry parameter requires grad
   void zero_grad();
-  size_t small_total() const { return small_total_; }
 
  private:
   std::vector<Param> params_;
   std::unordered_map<std::string, int> index_;  // name → handle
   uint64_t total_values_ = 0;
-  size_t small_total_ = 0;
+};
+
+// Per parameter: its start in each thread's double buffer, or kAtomic (see kSmallParamLimit).
+// Made from the current sizes at the start of each pass, so resampled parameters are laid out
+// afresh.
+struct GradientLayout {
+  static constexpr size_t kAtomic = SIZE_MAX;
+  std::vector<size_t> offset;  // per handle
+  size_t total = 0;            // doubles per thread
+
+  GradientLayout() = default;
+  GradientLayout(const ParamStore& store, size_t threads);
+  bool local(int handle) const { return offset[size_t(handle)] != kAtomic; }
 };
 
 // Per-thread view through which derivative shaders add δ·∂f/∂θ.
 class GradientAccumulator {
  public:
-  explicit GradientAccumulator(ParamStore* store = nullptr)
-      : store_(store), small_(store ? store->small_total() : 0, 0.0) {}
+  // Without a layout every add is an atomic float add (accumulators made only to ask `wants`).
+  explicit GradientAccumulator(ParamStore* store = nullptr, const GradientLayout* layout = nullptr)
+      : store_(store), layout_(layout), local_(layout ? layout->total : 0, 0.0) {}
   void add(int handle, size_t index, float v) {
     Param& p = (*store_)[handle];
     if (!p.requires_grad) return;
-    if (p.small) {
-      small_[p.small_offset + index] += double(v);
+    if (layout_ && layout_->local(handle)) {
+      local_[layout_->offset[size_t(handle)] + index] += double(v);
     } else {
       std::atomic_ref<float>(p.grad[index]).fetch_add(v, std::memory_order_relaxed);
     }
   }
+  // add(handle, index, v) for several elements of one parameter: emit(add) calls add(index, v)
+  // for each, with the parameter's checks made once (a grid lookup's 8 taps).
+  template <class Emit>
+  void add_each(int handle, Emit&& emit) {
+    Param& p = (*store_)[handle];
+    if (!p.requires_grad) return;
+    if (layout_ && layout_->local(handle)) {
+      double* local = local_.data() + layout_->offset[size_t(handle)];
+      emit([local](size_t index, float v) { local[index] += double(v); });
+    } else {
+      float* grad = p.grad.data();
+      emit([grad](size_t index, float v) {
+        std::atomic_ref<float>(grad[index]).fetch_add(v, std::memory_order_relaxed);
+      });
+    }
+  }
   bool wants(int handle) const { return handle >= 0 && (*store_)[handle].requires_grad; }
-  std::vector<double>& small() { return small_; }
+  const std::vector<double>& local() const { return local_; }
 
  private:
   ParamStore* store_;
-  std::vector<double> small_;
+  const GradientLayout* layout_;
+  std::vector<double> local_;
 };
 
 // One accumulator per worker thread, reduced once at the end of a pass.
 class GradientSink {
  public:
-  explicit GradientSink(ParamStore& store)
-      : store_(store), per_thread_([&store] { return GradientAccumulator(&store); }) {}
+  explicit GradientSink(ParamStore& store);
   GradientAccumulator& local() { return per_thread_.local(); }
+  const GradientLayout& layout() const { return layout_; }
   // Adds the per-thread double sums into the float gradient buffers.
   void reduce();
 
  private:
   ParamStore& store_;
+  GradientLayout layout_;
   tbb::enumerable_thread_specific<GradientAccumulator> per_thread_;
 };
 

@@ -71,6 +71,48 @@ T grid_eval(const Param& p, const TrilinearFootprint& fp, int channel) {
   return out;
 }
 
+// One channel of a grid read in float, for the lookups of tracking (every tentative collision
+// reads the density): the arithmetic of trilinear_footprint followed by grid_eval<float>, tap
+// for tap, so the value is bitwise the same, but the shape is read once per ray instead of once
+// per lookup and no footprint is built. (A zero-weight tap adds +0 here where grid_eval skips
+// it: the same value.)
+class GridReader {
+ public:
+  GridReader(const Param& p, int channel)
+      : data_(p.value.data() + channel), n_(grid_size(p)), channels_(size_t(n_.channels)) {}
+
+  float operator()(const Vec3f& local) const {
+    const int dims[3] = {n_.x, n_.y, n_.z};
+    long i0[3], i1[3];
+    float w[3][2];
+    for (int a = 0; a < 3; ++a) {
+      const float q = local[a] * float(dims[a]) - 0.5f;
+      const float fl = std::floor(q);
+      const float f = q - fl;
+      const long base = long(fl);
+      i0[a] = std::clamp(base, 0L, long(dims[a] - 1));
+      i1[a] = std::clamp(base + 1, 0L, long(dims[a] - 1));
+      w[a][0] = 1.f - f;
+      w[a][1] = f;
+    }
+    const size_t x[2] = {size_t(i0[0]) * channels_, size_t(i1[0]) * channels_};
+    const size_t row = n_.x * channels_, slab = size_t(n_.y) * row;
+    const size_t y[2] = {size_t(i0[1]) * row, size_t(i1[1]) * row};
+    const size_t z[2] = {size_t(i0[2]) * slab, size_t(i1[2]) * slab};
+    float out = 0.f;
+    for (int k = 0; k < 8; ++k) {
+      const int bx = k & 1, by = (k >> 1) & 1, bz = (k >> 2) & 1;
+      out = out + data_[z[bz] + y[by] + x[bx]] * (w[0][bx] * w[1][by] * w[2][bz]);
+    }
+    return out;
+  }
+
+ private:
+  const float* data_;
+  GridSize n_;
+  size_t channels_;
+};
+
 template <class T>
 Spectrum<T> grid_eval_rgb(const Param& p, const TrilinearFootprint& fp) {
   if (grid_size(p).channels == 1) {
@@ -84,8 +126,10 @@ Spectrum<T> grid_eval_rgb(const Param& p, const TrilinearFootprint& fp) {
 inline void grid_backprop(int handle, const Param& p, const TrilinearFootprint& fp, int channel, float adjoint,
                           GradientAccumulator& grads) {
   const size_t channels = size_t(grid_size(p).channels);
-  for (int k = 0; k < 8; ++k)
-    if (fp.weight[k] != 0.f) grads.add(handle, fp.voxel[k] * channels + size_t(channel), fp.weight[k] * adjoint);
+  grads.add_each(handle, [&](auto&& add) {
+    for (int k = 0; k < 8; ++k)
+      if (fp.weight[k] != 0.f) add(fp.voxel[k] * channels + size_t(channel), fp.weight[k] * adjoint);
+  });
 }
 
 inline void grid_backprop_rgb(int handle, const Param& p, const TrilinearFootprint& fp, const Vec3f& adjoint,

@@ -21,6 +21,7 @@
 #include <cmath>
 #include <limits>
 #include <string>
+#include <type_traits>
 
 #include "engine/core/params.h"
 #include "kernels/medium/grid.h"
@@ -31,7 +32,7 @@ namespace bl {
 
 struct Medium {
   std::string name;
-  bool grid = false;  // false: homogeneous
+  bool grid = false;                                  // false: homogeneous
   int density = -1, albedo = -1, scale = -1, g = -1;  // parameter handles
   Vec3f bbox_min{0.f, 0.f, 0.f}, bbox_max{1.f, 1.f, 1.f};
   float headroom = 1.25f;
@@ -54,9 +55,7 @@ struct Medium {
     }
   }
 
-  Vec3f to_local(const Vec3f& world) const {
-    return grid ? (world - bbox_min) * inv_extent : Vec3f{0.5f, 0.5f, 0.5f};
-  }
+  Vec3f to_local(const Vec3f& world) const { return grid ? (world - bbox_min) * inv_extent : Vec3f{0.5f, 0.5f, 0.5f}; }
 
   // The pieces of o + t·d (world units, d unit length), t in [0, t_max), with their majorants.
   template <class Visit>
@@ -79,11 +78,27 @@ struct Medium {
     return ParamLoad<T>::load(params[scale], 0) * rho;
   }
 
+  // σ_t in float along one ray (tracking): the density grid's reader and the scale, read once.
+  // The same value as sigma_t<float>, bitwise.
+  class SigmaReader {
+   public:
+    SigmaReader(const Medium& m, const ParamStore& params)
+        : m_(m),
+          density_(params[m.density], 0),
+          scale_(params[m.scale].value[0]),
+          constant_(m.grid ? 0.f : params[m.density].value[0]) {}
+    float operator()(const Vec3f& world) const { return scale_ * (m_.grid ? density_(m_.to_local(world)) : constant_); }
+
+   private:
+    const Medium& m_;
+    GridReader density_;
+    float scale_, constant_;
+  };
+
   template <class T>
   Spectrum<T> albedo_at(const ParamStore& params, const Vec3f& world) const {
     const Param& ap = params[albedo];
-    if (ap.shape.size() == 4)
-      return grid_eval_rgb<T>(ap, trilinear_footprint(grid_size(ap), to_local(world)));
+    if (ap.shape.size() == 4) return grid_eval_rgb<T>(ap, trilinear_footprint(grid_size(ap), to_local(world)));
     return {ParamLoad<T>::load(ap, 0), ParamLoad<T>::load(ap, 1), ParamLoad<T>::load(ap, 2)};
   }
 
@@ -93,11 +108,8 @@ struct Medium {
   }
 
   // Derivative shaders: adjoint · ∂(quantity at x)/∂θ into every parameter the value read.
-  bool wants_sigma_grad(const GradientAccumulator& grads) const {
-    return grads.wants(density) || grads.wants(scale);
-  }
-  void backprop_sigma_t(const ParamStore& params, const Vec3f& world, float adjoint,
-                        GradientAccumulator& grads) const {
+  bool wants_sigma_grad(const GradientAccumulator& grads) const { return grads.wants(density) || grads.wants(scale); }
+  void backprop_sigma_t(const ParamStore& params, const Vec3f& world, float adjoint, GradientAccumulator& grads) const {
     const Param& dp = params[density];
     if (grid) {
       const TrilinearFootprint fp = footprint(params, world);
@@ -125,6 +137,15 @@ struct Medium {
   }
 };
 
+// σ_t(world) on T for tracking: the float reader, or sigma_t<T> (the taped mode's leaves).
+template <class T>
+auto sigma_lookup(const Medium& m, const ParamStore& params) {
+  if constexpr (std::is_same_v<T, float>)
+    return Medium::SigmaReader(m, params);
+  else
+    return [&m, &params](const Vec3f& world) { return m.sigma_t<T>(params, world); };
+}
+
 // Tracking callbacks that do nothing (primal and taped runs).
 struct NoTrackingEvents {
   void operator()(const Vec3f&, float, float, bool) const {}
@@ -134,16 +155,17 @@ struct NoTrackingEvents {
 // on_collision(x, σ_t value, majorant, real) is called at every tentative collision (prb uses it
 // for the score terms of the real/null choices).
 template <class T, class OnCollision = NoTrackingEvents>
-FreeFlight<T> medium_free_flight(const Medium& m, const ParamStore& params, const Vec3f& o, const Vec3f& d,
-                                 float t_max, TrackingSampler& rng, OnCollision&& on_collision = {}) {
+FreeFlight<T> medium_free_flight(const Medium& m, const ParamStore& params, const Vec3f& o, const Vec3f& d, float t_max,
+                                 TrackingSampler& rng, OnCollision&& on_collision = {}) {
   FreeFlight<T> out;
+  const auto sigma_at = sigma_lookup<T>(m, params);
   m.segments(o, d, t_max, [&](const MajorantSegment& seg) {
     if (!(seg.majorant > 0.f)) return true;
     float t = seg.t0;
     for (;;) {
       t -= std::log(1.f - rng.next()) / seg.majorant;
       if (!(t < seg.t1)) return true;
-      const T sigma = m.sigma_t<T>(params, o + d * t);
+      const T sigma = sigma_at(o + d * t);
       const float sigma_value = value_of(sigma);
       const bool real = rng.next() * seg.majorant < sigma_value;
       on_collision(o + d * t, sigma_value, seg.majorant, real);
@@ -166,6 +188,7 @@ template <class T, class OnPoint = NoTrackingEvents>
 T medium_transmittance(const Medium& m, const ParamStore& params, const Vec3f& o, const Vec3f& d, float t_max,
                        TrackingSampler& rng, OnPoint&& on_point = {}) {
   T transmittance = T(1.f);
+  const auto sigma_at = sigma_lookup<T>(m, params);
   m.segments(o, d, t_max, [&](const MajorantSegment& seg) {
     if (!(seg.majorant > 0.f)) return true;
     float t = seg.t0;
@@ -173,7 +196,7 @@ T medium_transmittance(const Medium& m, const ParamStore& params, const Vec3f& o
       t -= std::log(1.f - rng.next()) / seg.majorant;
       if (!(t < seg.t1)) return true;
       const Vec3f x = o + d * t;
-      const T sigma = m.sigma_t<T>(params, x);
+      const T sigma = sigma_at(x);
       on_point(x, value_of(sigma), seg.majorant, false);
       transmittance = transmittance * (T(1.f) - sigma / seg.majorant);
       if (value_of(transmittance) == 0.f) return false;  // also ends rays to infinity in unbounded media

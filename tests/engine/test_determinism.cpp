@@ -1,8 +1,9 @@
 // Determinism across thread counts. The primal render sums each pixel's samples in a fixed order
 // inside one task, so images must be bitwise identical for 1 and 2 worker threads. Gradients are
-// accumulated by several threads: small parameters (≤ kSmallParamLimit floats) in per-thread
-// double sums reduced once, large ones by atomic float adds whose order varies. The tests below
-// pin down what holds (measured, see the comments at each check).
+// accumulated by several threads: small parameters (≤ kSmallParamLimit floats), and larger ones
+// while their per-thread copies fit the local gradient budget, in per-thread double sums reduced
+// once, the rest by atomic float adds whose order varies. The tests below pin down what holds
+// (measured, see the comments at each check).
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
 #include <catch2/catch.hpp>
@@ -90,8 +91,17 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
   auto scene = open_scene();
   Image target = render(*scene, {0, 16, 99, false});
   for (auto& v : target.data) v *= 0.7f;
-  for (GradientMethod m : {GradientMethod::Prb, GradientMethod::Rb}) {
-    INFO("method " << method_name(m));
+  // Both ways of accumulating (engine/core/params.h): with the default budget the scene's
+  // textures (384 and 768 values) take per-thread double sums, with none atomic float adds.
+  const size_t default_budget = local_gradient_budget();
+  struct Restore {
+    size_t budget;
+    ~Restore() { set_local_gradient_budget(budget); }
+  } restore{default_budget};
+  for (auto [m, budget] : {std::pair{GradientMethod::Prb, default_budget}, std::pair{GradientMethod::Prb, size_t(0)},
+                           std::pair{GradientMethod::Rb, default_budget}}) {
+    INFO("method " << method_name(m) << ", local gradient budget " << budget << " bytes");
+    set_local_gradient_budget(budget);
     Image img1, img2;
     auto g1 = gradients(*scene, target, m, 1, &img1);
     auto g2 = gradients(*scene, target, m, 2, &img2);
@@ -110,14 +120,17 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
         differing += g1[i][k] != g2[i][k];
       }
       norm = std::sqrt(norm), diff = std::sqrt(diff);
-      INFO(p.name << " (" << p.size() << " values, " << (p.small ? "per-thread double sums" : "atomic float adds")
+      // How the two runs accumulated this parameter (engine/core/params.h).
+      const bool local =
+          GradientLayout(scene->params, 1).local(int(i)) && GradientLayout(scene->params, 2).local(int(i));
+      INFO(p.name << " (" << p.size() << " values, " << (local ? "per-thread double sums" : "atomic float adds")
                   << "): |g| = " << norm << ", |g1 − g2| = " << diff << ", " << differing << " elements differ");
       CHECK(norm > 0);
       // Both kinds: the difference is rounding only, far below 1e-5 of the gradient's norm
       // (measured on this scene: 0 for small parameters, ~5e-8 relative for atomic ones, where
       // a few dozen of the 384/768 elements differ in their last bits from run to run).
       CHECK(diff <= 1e-5 * norm);
-      if (p.small) {
+      if (local) {
         // Double sums rounded once to float: measured bitwise equal in every run, but a
         // different grouping of the double partial sums may in rare cases round to the
         // neighbouring float, so one float ulp is allowed.
@@ -133,6 +146,64 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
       }
     }
   }
+}
+
+TEST_CASE("the gradient layout: which buffers sum per thread, within the budget", "[determinism][gradient]") {
+  const size_t default_budget = local_gradient_budget();
+  struct Restore {
+    size_t budget;
+    ~Restore() { set_local_gradient_budget(budget); }
+  } restore{default_budget};
+  ParamStore store;
+  auto add = [&](const std::string& name, size_t n) {
+    Param p;
+    p.name = name;
+    p.shape = {int(n)};
+    p.value.assign(n, 1.f);
+    return store.add(p);
+  };
+  const int tiny = add("a.tiny", 3), unused = add("a.unused", 3), big = add("a.big", 1000),
+            bigger = add("a.bigger", 3000);
+  store.require_grad({"a.tiny", "a.big", "a.bigger"});
+  // 1000 doubles on 2 threads take 16 000 bytes: a budget of 40 000 holds a.big (handle order),
+  // not a.bigger after it (48 000 more); small buffers take no budget.
+  set_local_gradient_budget(40000);
+  GradientLayout two(store, 2);
+  CHECK(two.local(tiny));
+  CHECK_FALSE(two.local(unused));  // no gradient asked: no space
+  CHECK(two.local(big));
+  CHECK_FALSE(two.local(bigger));
+  CHECK(two.total == 3 + 1000);
+  // On one thread both fit (8 000 + 24 000 bytes); with no budget only the small one is local.
+  CHECK(GradientLayout(store, 1).local(bigger));
+  set_local_gradient_budget(0);
+  CHECK(GradientLayout(store, 2).local(tiny));
+  CHECK_FALSE(GradientLayout(store, 2).local(big));
+
+  // The same adds through both ways give the same sums (up to float rounding of the atomics).
+  std::vector<std::vector<float>> sums;
+  for (size_t budget : {size_t(0), size_t(1) << 20}) {
+    set_local_gradient_budget(budget);
+    store.zero_grad();
+    GradientSink sink(store);
+    with_threads(2, [&] {
+      tbb::parallel_for(0, 64, [&](int i) {
+        GradientAccumulator& g = sink.local();
+        for (int k = 0; k < 3000; ++k) g.add(bigger, size_t(k), 0.25f * float((i + k) % 7));
+        g.add_each(big, [&](auto&& emit) {
+          for (int k = 0; k < 1000; k += 3) emit(size_t(k), 1.f / float(1 + i));
+        });
+      });
+      return 0;
+    });
+    sink.reduce();
+    std::vector<float> all = store[bigger].grad;
+    all.insert(all.end(), store[big].grad.begin(), store[big].grad.end());
+    sums.push_back(all);
+  }
+  for (size_t k = 0; k < sums[0].size(); ++k) REQUIRE(sums[0][k] == Approx(sums[1][k]).epsilon(1e-6));
+  CHECK(sums[1][3000] == Approx(4.7438909).epsilon(1e-6));  // Σ_{i<64} 1/(1+i), element 0 of a.big
+  CHECK(sums[1][3001] == 0.f);                              // not added to
 }
 
 TEST_CASE("PathSampler streams regenerate identically on any thread", "[determinism][sampler]") {

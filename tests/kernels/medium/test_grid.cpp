@@ -72,6 +72,30 @@ TEST_CASE("trilinear lookup follows the clamped voxel-centre rule", "[medium][gr
       }
 }
 
+TEST_CASE("the tracking reader returns grid_eval's value bit for bit", "[medium][grid]") {
+  // Tracking reads the density through GridReader; the taped mode and the derivative shaders go
+  // through the footprint. prb replays and the taped oracle rely on both giving the same float.
+  for (int channels : {1, 3}) {
+    const Param p = random_grid(7, 4, 5, channels, 11);
+    const GridSize n = grid_size(p);
+    TestRng rng(12);
+    size_t differing = 0;
+    for (int i = 0; i < 20000; ++i) {
+      // Inside the grid, within half a voxel of a face, on voxel centres and outside the unit
+      // cube (a ray's end point may round past a face): the clamped cases included.
+      Vec3f l(float(rng.next_double()), float(rng.next_double()), float(rng.next_double()));
+      if (i % 4 == 1) l[i % 3] = float(i % 8 < 4 ? 0.5 / n.x * rng.next_double() : 1 - 0.5 / n.x * rng.next_double());
+      if (i % 4 == 2) l = Vec3f((std::floor(l.x * n.x) + 0.5f) / n.x, (std::floor(l.y * n.y) + 0.5f) / n.y, l.z);
+      if (i % 4 == 3) l[i % 3] = float(-0.01 + 1.02 * rng.next_double());
+      for (int c = 0; c < channels; ++c) {
+        const float expected = grid_eval<float>(p, trilinear_footprint(n, l), c);
+        differing += GridReader(p, c)(l) != expected;
+      }
+    }
+    CHECK(differing == 0);
+  }
+}
+
 TEST_CASE("grid backprop is the exact transpose of the lookup", "[medium][grid][gradient]") {
   // <a, J v> = <J^T a, v> for the map J from voxels to values at M points.
   for (int channels : {1, 3}) {
