@@ -92,13 +92,7 @@ class GradientAccumulator {
   explicit GradientAccumulator(ParamStore* store = nullptr, const GradientLayout* layout = nullptr)
       : store_(store), layout_(layout), local_(layout ? layout->total : 0, 0.0) {}
   void add(int handle, size_t index, float v) {
-    Param& p = (*store_)[handle];
-    if (!p.requires_grad) return;
-    if (layout_ && layout_->local(handle)) {
-      local_[layout_->offset[size_t(handle)] + index] += double(v);
-    } else {
-      std::atomic_ref<float>(p.grad[index]).fetch_add(v, std::memory_order_relaxed);
-    }
+    add_each(handle, [&](auto&& emit) { emit(index, v); });
   }
   // add(handle, index, v) for several elements of one parameter: emit(add) calls add(index, v)
   // for each, with the parameter's checks made once (a grid lookup's 8 taps).

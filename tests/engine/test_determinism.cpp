@@ -27,6 +27,12 @@ auto with_threads(int n, F&& f) {
   return f();
 }
 
+// Puts the local gradient budget back when a test case that changes it ends.
+struct RestoreBudget {
+  size_t budget;
+  ~RestoreBudget() { set_local_gradient_budget(budget); }
+};
+
 std::unique_ptr<Scene> cornell(int res) {
   auto scene = load_scene(std::string(BL_SOURCE_DIR) + "/scenes/cornell/scene.json");
   for (auto& c : scene->cameras) c.width = c.height = res, c.update();
@@ -94,10 +100,7 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
   // Both ways of accumulating (engine/core/params.h): with the default budget the scene's
   // textures (384 and 768 values) take per-thread double sums, with none atomic float adds.
   const size_t default_budget = local_gradient_budget();
-  struct Restore {
-    size_t budget;
-    ~Restore() { set_local_gradient_budget(budget); }
-  } restore{default_budget};
+  const RestoreBudget restore{default_budget};
   for (auto [m, budget] : {std::pair{GradientMethod::Prb, default_budget}, std::pair{GradientMethod::Prb, size_t(0)},
                            std::pair{GradientMethod::Rb, default_budget}}) {
     INFO("method " << method_name(m) << ", local gradient budget " << budget << " bytes");
@@ -150,10 +153,7 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
 
 TEST_CASE("the gradient layout: which buffers sum per thread, within the budget", "[determinism][gradient]") {
   const size_t default_budget = local_gradient_budget();
-  struct Restore {
-    size_t budget;
-    ~Restore() { set_local_gradient_budget(budget); }
-  } restore{default_budget};
+  const RestoreBudget restore{default_budget};
   ParamStore store;
   auto add = [&](const std::string& name, size_t n) {
     Param p;
