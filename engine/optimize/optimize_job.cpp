@@ -123,6 +123,7 @@ struct Config {
     int until = 0;
     int downsample = 1;
     int views_per_iteration = -1;  // -1: the top-level setting
+    int loss_downsample = -1;      // -1: the top-level setting
   };
   std::vector<ImageStage> image_schedule;
   // A low-pass loss: the loss compares k×k block means of the render and the target, so a
@@ -189,13 +190,15 @@ Config parse_config(const std::string& path) {
 
   if (const json* st = n.find("image_schedule")) {
     if (!st->is_array())
-      n.fail_at("image_schedule", "expected a list of {\"until\", \"downsample\", \"views_per_iteration\"}");
+      n.fail_at("image_schedule",
+                "expected a list of {\"until\", \"downsample\", \"views_per_iteration\", \"loss_downsample\"}");
     for (size_t i = 0; i < st->size(); ++i) {
       Node s((*st)[i], "/image_schedule/" + std::to_string(i), c.file);
       Config::ImageStage stage;
       stage.until = int(s.number_required("until", 0, 1e7));
       stage.downsample = int(s.integer("downsample", 1, 1, 64));
       stage.views_per_iteration = int(s.integer("views_per_iteration", -1, 0, 10000));
+      stage.loss_downsample = int(s.integer("loss_downsample", -1, 1, 64));
       if (!c.image_schedule.empty() && stage.until <= c.image_schedule.back().until)
         s.fail_at("until", "stages must be increasing");
       s.finish();
@@ -815,19 +818,26 @@ class Job {
         views.targets.push_back(box_downsample(targets_[v], k));
       }
     }
-    // The block loss's k must divide every render, at every factor of the image schedule.
-    const int k = c_.loss_downsample;
-    std::vector<int> factors{1};
-    for (const auto& s : c_.image_schedule) factors.push_back(s.downsample);
-    for (const int f : factors)
+    // Each block loss's k must divide the renders it applies to: the top-level k those after the
+    // last stage (and of stages without their own), a stage's own k that stage's.
+    auto check = [&](int k, int f, const std::string& where) {
       for (size_t v = 0; v < cameras_.size(); ++v) {
         const Camera& cam = scene_->cameras[size_t(f == 1 ? cameras_[v] : scaled_views_.at(f).cameras[v])];
         if (cam.width % k != 0 || cam.height % k != 0)
-          throw file_error(c_.file, "/loss_downsample: " + std::to_string(k) + " does not divide the " +
+          throw file_error(c_.file, where + ": " + std::to_string(k) + " does not divide the " +
                                         std::to_string(cam.width) + "x" + std::to_string(cam.height) + " of view '" +
                                         scene_->cameras[size_t(cameras_[v])].name + "'" +
                                         (f == 1 ? "" : " at image-schedule downsample " + std::to_string(f)));
       }
+    };
+    check(c_.loss_downsample, 1, "/loss_downsample");
+    for (size_t i = 0; i < c_.image_schedule.size(); ++i) {
+      const auto& s = c_.image_schedule[i];
+      if (s.loss_downsample > 0)
+        check(s.loss_downsample, s.downsample, "/image_schedule/" + std::to_string(i) + "/loss_downsample");
+      else
+        check(c_.loss_downsample, s.downsample, "/loss_downsample");
+    }
   }
 
   // The downsampling factor of iteration `it` (1: full resolution).
@@ -835,6 +845,13 @@ class Job {
     for (const auto& s : c_.image_schedule)
       if (it < s.until) return s.downsample;
     return 1;
+  }
+
+  // The block loss's k at iteration `it` (1: the loss of pixels).
+  int loss_downsample_at(int it) const {
+    for (const auto& s : c_.image_schedule)
+      if (it < s.until) return s.loss_downsample > 0 ? s.loss_downsample : c_.loss_downsample;
+    return c_.loss_downsample;
   }
 
   // The views rendered by iteration `it` (0: all).
@@ -924,12 +941,13 @@ class Job {
         rq.pass = {camera, c_.spp, iteration_seed(c_.seed, it, v, 0), false};
         rq.adjoint_seed = c_.decorrelate ? iteration_seed(c_.seed, it, v, 1) : rq.pass.seed;
         rq.accumulate = true;
-        if (c_.loss_downsample > 1 || c_.adjoint_spp != c_.spp) {
+        const int loss_k = loss_downsample_at(it);
+        if (loss_k > 1 || c_.adjoint_spp != c_.spp) {
           // The loss render and the adjoint pass are separate passes: different sample counts, or
           // the loss of block means, which needs every pixel of a block before any δ is known.
           Image img = render(*scene_, rq.pass);
-          LossResult lr = c_.loss_downsample > 1 ? compute_block_loss(c_.loss, img, target, c_.loss_downsample)
-                                                 : compute_loss(c_.loss, img, target);
+          LossResult lr =
+              loss_k > 1 ? compute_block_loss(c_.loss, img, target, loss_k) : compute_loss(c_.loss, img, target);
           PassOptions adj{camera, c_.adjoint_spp, rq.adjoint_seed, false};
           backward(*scene_, adj, AdjointMethod::Prb, [&](size_t p, const Vec3f&) {
             return Vec3f{lr.adjoint.data[p * 3], lr.adjoint.data[p * 3 + 1], lr.adjoint.data[p * 3 + 2]};

@@ -500,6 +500,14 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
   expect_error(head + tail + R"("loss_downsample": 32, "image_schedule": [{"until": 2, "downsample": 2}]})",
                "bad.json: /loss_downsample: 32 does not divide the 16x16 of view 'top' at image-schedule downsample 2");
   expect_error(head + tail + R"("loss_downsample": 0})", "/loss_downsample");
+  // A stage's own block loss: checked against that stage's renders.
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "loss_downsample": 3}]})",
+               "bad.json: /image_schedule/0/loss_downsample: 3 does not divide the 32x32 of view 'top'");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "downsample": 2, "loss_downsample": 32}]})",
+               "bad.json: /image_schedule/0/loss_downsample: 32 does not divide the 16x16 of view 'top' at "
+               "image-schedule downsample 2");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2, "loss_downsample": 0}]})",
+               "/image_schedule/0/loss_downsample");
 }
 
 TEST_CASE("an image schedule renders early iterations smaller, against block means of the targets", "[optimizer]") {
@@ -649,29 +657,47 @@ TEST_CASE("a block-mean loss: its adjoint is its derivative, per pixel and throu
   // noise, independent from pixel to pixel; 2×2 block means carry a quarter of its variance.
   const std::string job_dir = test::temp_dir("opt-block-loss-job");
   const std::string text = tiny_job_at_truth(job_dir, 6);
-  auto with_blocks = [&](const std::string& out, int k) {
+  auto with_blocks = [&](const std::string& out, int k, const std::string& extra = "") {
     std::string t = text;
     t.replace(t.find("\"output\": \"out\""), 15, "\"output\": \"" + out + "\"");
-    t.insert(t.rfind('}'), ", \"loss_downsample\": " + std::to_string(k));
+    t.insert(t.rfind('}'), ", \"loss_downsample\": " + std::to_string(k) + extra);
     std::ofstream(job_dir + "/" + out + ".json") << t;
     return job_dir + "/" + out + ".json";
   };
   REQUIRE(run_optimize(with_blocks("blocks", 2), "", 0, true) == 0);
   REQUIRE(run_optimize(with_blocks("pixels", 1), "", 0, true) == 0);
-  auto mean_loss = [&](const std::string& out) {
+  // Blocks for the first three iterations only (an image-schedule stage's own loss_downsample).
+  REQUIRE(run_optimize(with_blocks("staged", 1, R"(, "image_schedule": [{"until": 3, "loss_downsample": 2}])"), "", 0,
+                       true) == 0);
+  auto losses = [&](const std::string& out) {
     std::ifstream f(job_dir + "/" + out + "/loss.csv");
     std::string line;
     std::getline(f, line);
-    double sum = 0;
-    int n = 0;
-    while (std::getline(f, line)) sum += std::stod(line.substr(line.find(',') + 1)), ++n;
-    REQUIRE(n == 6);  // one row per iteration
-    return sum / n;
+    std::vector<std::string> rows;
+    while (std::getline(f, line)) {
+      const size_t a = line.find(',') + 1, b = line.find(',', a);
+      rows.push_back(line.substr(a, b - a));  // the loss column, as printed
+    }
+    REQUIRE(rows.size() == 6);  // one row per iteration
+    return rows;
   };
-  const double blocks_loss = mean_loss("blocks"), pixels_loss = mean_loss("pixels");
+  auto mean_loss = [&](const std::vector<std::string>& rows, size_t from, size_t to) {
+    double sum = 0;
+    for (size_t i = from; i < to; ++i) sum += std::stod(rows[i]);
+    return sum / double(to - from);
+  };
+  const auto blocks = losses("blocks"), pixels = losses("pixels"), staged = losses("staged");
+  const double blocks_loss = mean_loss(blocks, 0, 6), pixels_loss = mean_loss(pixels, 0, 6);
   INFO("mean loss at the truth: 2x2 blocks " << blocks_loss << ", pixels " << pixels_loss);
   CHECK(blocks_loss > 0.15 * pixels_loss);
   CHECK(blocks_loss < 0.4 * pixels_loss);
+  // The staged run is the block run until its stage ends (the same renders, the same steps), then
+  // a loss of pixels again.
+  for (size_t i = 0; i < 3; ++i) CHECK(staged[i] == blocks[i]);
+  const double staged_after = mean_loss(staged, 3, 6), pixels_after = mean_loss(pixels, 3, 6);
+  INFO("iterations 3-5: staged " << staged_after << ", pixels " << pixels_after);
+  CHECK(staged_after > 0.8 * pixels_after);
+  CHECK(staged_after < 1.25 * pixels_after);
 }
 
 TEST_CASE("cached reference targets are re-rendered when the scene or the reference changes", "[optimizer]") {
