@@ -524,8 +524,9 @@ void one_edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHi
     const Hit hit = scene.geometry->intersect(ray);
     if (hit.mesh < 0) {
       if (scene.environment.present) {
-        const float w = power_heuristic(select * scene.environment.pdf(d), p_bsdf);
-        h_fixed += inner(a, v.beta * f * scene.environment.eval<float>(scene.params, d) * w);
+        const EnvLookup look = scene.environment.lookup(d);
+        const float w = power_heuristic(select * scene.environment.pdf(d, look), p_bsdf);
+        h_fixed += inner(a, v.beta * f * scene.environment.eval<float>(scene.params, look) * w);
       }
     } else {
       const Mesh& m = scene.meshes[size_t(hit.mesh)];

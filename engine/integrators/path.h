@@ -370,7 +370,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, p, es.wi, tmax, medium, tr)) {
               Spectrum<T> emitted = chosen < area_count
                                         ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
-                                        : scene.environment.eval<T>(params, es.wi);
+                                        : scene.environment.eval<T>(params, es.env);
               const float light_pdf = es.pdf * select_pdf;
               const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase_detached, wi_phase, es.wi)) / light_pdf;
               const Spectrum<T> contribution = beta * albedo * emitted * (f * tr * w_over_pdf);
@@ -410,9 +410,11 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (hit.mesh < 0) {
       observer.reached(vertex, kSiteEscape);
       if (scene.environment.present && visible_emitter) {
-        float w =
-            mis_bsdf_pdf > 0.f ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction)) : 1.f;
-        Spectrum<T> contribution = beta * scene.environment.eval<T>(params, ray.direction) * w;
+        const EnvLookup look = scene.environment.lookup(ray.direction);  // one atan2/acos for pdf and eval
+        const float w = mis_bsdf_pdf > 0.f
+                            ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction, look))
+                            : 1.f;
+        Spectrum<T> contribution = beta * scene.environment.eval<T>(params, look) * w;
         radiance += contribution;
         if constexpr (Observer::kActive)
           observer.emission({-1, {}, ray.direction}, value_of(beta) * w, value_of(contribution));
@@ -488,7 +490,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, origin, es.wi, tmax, shadow_medium, tr)) {
             EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi, es.triangle, es.b1, es.b2};
             Spectrum<T> emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
-                                                      : scene.environment.eval<T>(params, es.wi);
+                                                      : scene.environment.eval<T>(params, es.env);
             float light_pdf = es.pdf * select_pdf;
             float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
             Spectrum<T> contribution = beta * f * emitted * (tr * w_over_pdf);

@@ -9,6 +9,13 @@
 
 namespace bl {
 
+// Where a direction reads an environment map (kernels/emitter/envmap.h): the texel (nearest
+// lookup) or the cell between four samples and the position in it (bilinear).
+struct EnvLookup {
+  int row = 0, col = 0;
+  float fx = 0.f, fy = 0.f;  // bilinear only
+};
+
 struct EmitterSample {
   Vec3f wi;              // unit direction from the reference point towards the emitter
   float distance = 0.f;  // to the sampled point; infinity for environments
@@ -17,6 +24,7 @@ struct EmitterSample {
   Vec3f point;
   int triangle = -1;         // area emitters: the sampled triangle of the emitter's mesh
   float b1 = 0.f, b2 = 0.f;  // and the point's barycentrics in it
+  EnvLookup env;             // environments: where wi reads the map (eval and pdf share it)
 };
 
 }  // namespace bl

@@ -52,11 +52,6 @@ std::pair<int, int> Environment::texel_of(const Vec3f& dir) const {
   return {std::clamp(int(uv.y * float(height)), 0, height - 1), std::clamp(int(uv.x * float(width)), 0, width - 1)};
 }
 
-size_t Environment::texel_index(const Vec3f& dir) const {
-  auto [row, col] = texel_of(dir);
-  return size_t(row) * size_t(width) + size_t(col);
-}
-
 std::pair<int, int> Environment::cell_of(const Vec3f& dir, float* fx, float* fy) const {
   const Vec2f uv = direction_to_uv(dir);
   float u = uv.x - 0.5f;
@@ -68,9 +63,9 @@ std::pair<int, int> Environment::cell_of(const Vec3f& dir, float* fx, float* fy)
   return {row, col};
 }
 
-Environment::Taps Environment::bilinear_taps(const Vec3f& dir) const {
-  float fx, fy;
-  const auto [row, col] = cell_of(dir, &fx, &fy);
+Environment::Taps Environment::bilinear_taps(const EnvLookup& l) const {
+  const int row = l.row, col = l.col;
+  const float fx = l.fx, fy = l.fy;
   const size_t c0 = size_t(col), c1 = size_t((col + 1) % width), r0 = size_t(row) * size_t(width),
                r1 = r0 + size_t(width);
   return {{r0 + c0, r0 + c1, r1 + c0, r1 + c1}, {(1.f - fx) * (1.f - fy), fx * (1.f - fy), (1.f - fx) * fy, fx * fy}};
@@ -135,13 +130,16 @@ EmitterSample Environment::sample(Vec2f u) const {
   }
   s.wi = uv_to_direction(uv);
   s.uv = uv;
-  s.pdf = pdf(s.wi);
+  // Where wi reads the map, from wi itself (not the sampled cell: the round trip through the
+  // direction may cross into a neighbour), kept for the radiance lookup of the same direction.
+  s.env = lookup(s.wi);
+  s.pdf = pdf(s.wi, s.env);
   return s;
 }
 
-float Environment::pdf(const Vec3f& dir) const {
+float Environment::pdf(const Vec3f& dir, const EnvLookup& l) const {
   if (!is_map) return 1.f / (4.f * kPi);
-  auto [row, col] = bilinear ? cell_of(dir) : texel_of(dir);
+  const int row = l.row, col = l.col;
   // sqrt(x² + z²), not sqrt(1 − y²): the latter rounds to 0 within ~3e-4 rad of the poles.
   float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
   if (sin_theta <= 0.f) return 0.f;

@@ -15,6 +15,7 @@
 // samples with probability ∝ max of their luminances · sin θ, then a point uniformly in it: the
 // pdf is positive wherever the radiance is (an upper bound, not proportional like Mitsuba's
 // bilinear warp, so somewhat noisier on sharp maps), and exact for the sample/pdf pair.
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -46,12 +47,25 @@ struct Environment {
   // Rebuilds the sampling distribution from the current parameter values (detached).
   void prepare(const ParamStore& s);
 
+  // Where dir reads the map: one direction → (u, v) conversion (atan2 and acos) that eval, pdf
+  // and backprop of the same direction can share.
+  EnvLookup lookup(const Vec3f& dir) const {
+    EnvLookup l;
+    if (!is_map) return l;
+    std::tie(l.row, l.col) = bilinear ? cell_of(dir, &l.fx, &l.fy) : texel_of(dir);
+    return l;
+  }
+
   template <class T>
   Spectrum<T> eval(const ParamStore& s, const Vec3f& dir) const {
+    return eval<T>(s, lookup(dir));
+  }
+  template <class T>
+  Spectrum<T> eval(const ParamStore& s, const EnvLookup& l) const {
     const Param& p = s[param];
     if (!is_map) return constant_eval<T>(p) * scale;
     if (bilinear) {
-      const Taps taps = bilinear_taps(dir);
+      const Taps taps = bilinear_taps(l);
       Spectrum<T> sum(T(0.f));
       for (int k = 0; k < 4; ++k) {
         const size_t b = taps.texel[k] * 3;
@@ -60,7 +74,7 @@ struct Environment {
       }
       return sum * scale;
     }
-    size_t base = texel_index(dir) * 3;
+    const size_t base = texel_index(l) * 3;
     return Spectrum<T>{ParamLoad<T>::load(p, base), ParamLoad<T>::load(p, base + 1), ParamLoad<T>::load(p, base + 2)} *
            scale;
   }
@@ -70,26 +84,30 @@ struct Environment {
       constant_backprop(s[param], param, adjoint * scale, grads);
       return;
     }
+    const EnvLookup l = lookup(dir);
     if (bilinear) {
-      const Taps taps = bilinear_taps(dir);
+      const Taps taps = bilinear_taps(l);
       for (int k = 0; k < 4; ++k)
         for (int c = 0; c < 3; ++c)
           grads.add(param, taps.texel[k] * 3 + size_t(c), adjoint[c] * (scale * taps.weight[k]));
       return;
     }
-    size_t base = texel_index(dir) * 3;
+    const size_t base = texel_index(l) * 3;
     for (int c = 0; c < 3; ++c) grads.add(param, base + size_t(c), adjoint[c] * scale);
   }
   EmitterSample sample(Vec2f u) const;
-  float pdf(const Vec3f& dir) const;
+  float pdf(const Vec3f& dir) const { return pdf(dir, lookup(dir)); }
+  float pdf(const Vec3f& dir, const EnvLookup& l) const;  // l = lookup(dir)
 
-  size_t texel_index(const Vec3f& dir) const;
+  size_t texel_index(const Vec3f& dir) const { return texel_index(lookup(dir)); }
+  size_t texel_index(const EnvLookup& l) const { return size_t(l.row) * size_t(width) + size_t(l.col); }
   // The bilinear lookup: four texels and their weights (summing to 1).
   struct Taps {
     size_t texel[4];
     float weight[4];
   };
-  Taps bilinear_taps(const Vec3f& dir) const;
+  Taps bilinear_taps(const Vec3f& dir) const { return bilinear_taps(lookup(dir)); }
+  Taps bilinear_taps(const EnvLookup& l) const;
   // The bilinear mode's sampling cell (row, col) around dir, and its continuous sample position.
   std::pair<int, int> cell_of(const Vec3f& dir, float* fx = nullptr, float* fy = nullptr) const;
   std::pair<int, int> texel_of(const Vec3f& dir) const;  // (row, col) of the texel seen along dir
