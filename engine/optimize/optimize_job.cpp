@@ -54,6 +54,7 @@ struct Stage {
   int depth = 0;                   // > 0: a volume grid stage [X, Y, Z] = [width, height, depth]
   double lr = 0;                   // > 0: the learning rate during this stage (decay still applies); 0: the parameter's
   double large_steps_lambda = -1;  // ≥ 0: a grid's large-steps λ during this stage (0: off); < 0: the parameter's
+  int average_from = -1;           // ≥ 0: iterate averaging within this stage from here (replaces the parameter's)
 };
 
 struct OptimizedParam {
@@ -66,9 +67,10 @@ struct OptimizedParam {
   std::optional<Param> ground_truth;
   double tv_weight = 0;  // total-variation regularizer (grids and images)
   // Iterate averaging (Polyak–Ruppert): with average_from = N ≥ 0 the result is the mean of the
-  // values after iterations N+1, …, the last (restarted by a resolution change after N). It
-  // removes the jitter Monte Carlo gradients leave in the last iterates; the renders of the
-  // iterations themselves use the current iterate.
+  // values after iterations N+1, …, the last (restarted by a resolution change after N: the next
+  // stage starts from the finished stage's average, resampled). It removes the jitter Monte Carlo
+  // gradients leave in the last iterates; the renders of the iterations themselves use the current
+  // iterate. A stage's own average_from replaces N during that stage.
   int average_from = -1;
   std::vector<float> average;
   int average_count = 0;
@@ -318,6 +320,7 @@ Config parse_config(const std::string& path) {
         stage.width = r[0].get<int>(), stage.height = r[1].get<int>();
         if (s.has("lr")) stage.lr = s.number_required("lr", 1e-30, 1e6);
         if (s.has("large_steps_lambda")) stage.large_steps_lambda = s.number_required("large_steps_lambda", 0, 1e9);
+        if (s.has("average_from")) stage.average_from = int(s.integer("average_from", 0, 0, 10000000));
         if (!op.stages.empty() && stage.until <= op.stages.back().until)
           s.fail_at("until", "stages must be increasing");
         s.finish();
@@ -908,6 +911,8 @@ class Job {
         const Stage* s = stage_at(p, it);
         Param& param = scene_->params[p.handle];
         if (s && !has_resolution(param, *s)) {
+          // The finished stage's result is its iterate average, when it kept one.
+          if (p.average_count > 0) param.value = p.average;
           resize_param(param, *s);
           p.adam.reset(param.size());
           p.average.clear(), p.average_count = 0;
@@ -993,7 +998,9 @@ class Job {
           for (float& x : param.value) x = std::exp(x);
         if (p.bounds_outside_adam)
           for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
-        if (p.average_from >= 0 && it + 1 > p.average_from) {
+        const Stage* stage = stage_at(p, it);
+        const int average_from = stage && stage->average_from >= 0 ? stage->average_from : p.average_from;
+        if (average_from >= 0 && it + 1 > average_from) {
           if (p.average_count == 0) {
             p.average = param.value;
           } else {

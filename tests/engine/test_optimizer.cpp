@@ -17,6 +17,7 @@
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
+#include "engine/optimize/resample.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
@@ -391,6 +392,36 @@ TEST_CASE("iterate averaging returns the mean of the iterates after average_from
   const std::string e = test::temp_dir("avg-none");
   REQUIRE(run_optimize(averaging(write_tiny_job(e, 6), 6), "", 1, true) == 0);
   CHECK(read_all(e + "/out/final/floor.albedo.exr") == x6);
+}
+
+TEST_CASE("a stage's own average_from averages within the stage, and the next stage starts from that average",
+          "[optimizer]") {
+  // One worker thread, so runs of different lengths retrace each other bit for bit. Stage 0 (16²,
+  // iterations 0–2) averages its iterates after iteration 1; stage 1 (32²) steps with a learning
+  // rate too small to move a value, so its result is the resampled start it was given.
+  const std::string stages =
+      R"(, "schedule": [{"until": 3, "resolution": [16, 16]AVG}, {"until": 5, "resolution": [32, 32], "lr": 1e-30}])";
+  auto job = [&](const std::string& name, int iterations, bool average) {
+    std::string sched = stages;
+    sched.replace(sched.find("AVG"), 3, average ? R"(, "average_from": 1)" : "");
+    const std::string dir = test::temp_dir(name);
+    REQUIRE(run_optimize(write_tiny_job(dir, iterations, "", sched), "", 1, true) == 0);
+    return read_all(dir + "/out/final/floor.albedo.exr");
+  };
+  const std::vector<float> x2 = job("stage-avg-2", 2, false), x3 = job("stage-avg-3", 3, false),
+                           mean = job("stage-avg-mean", 3, true);
+  REQUIRE(x2.size() == 16 * 16 * 3);
+  REQUIRE(x2 != x3);
+  size_t off = 0;
+  for (size_t i = 0; i < mean.size(); ++i) off += mean[i] != x2[i] + (x3[i] - x2[i]) / 2.f;
+  CHECK(off == 0);
+  // Into stage 1: from the average (resampled as any stage change resamples), not from iterate 3.
+  const std::vector<float> from_mean = job("stage-avg-next", 4, true),
+                           from_last = job("stage-avg-next-plain", 4, false);
+  REQUIRE(from_mean.size() == 32 * 32 * 3);
+  CHECK(from_mean == resample(mean, 16, 16, 3, 32, 32));
+  CHECK(from_last == resample(x3, 16, 16, 3, 32, 32));
+  CHECK(from_mean != from_last);
 }
 
 TEST_CASE("config errors are one clear line naming the config", "[optimizer][errors]") {
