@@ -416,12 +416,10 @@ TEST_CASE("a stage's own average_from averages within the stage, and the next st
   for (size_t i = 0; i < mean.size(); ++i) off += mean[i] != x2[i] + (x3[i] - x2[i]) / 2.f;
   CHECK(off == 0);
   // Into stage 1: from the average (resampled as any stage change resamples), not from iterate 3.
-  const std::vector<float> from_mean = job("stage-avg-next", 4, true),
-                           from_last = job("stage-avg-next-plain", 4, false);
+  const std::vector<float> from_mean = job("stage-avg-next", 4, true);
   REQUIRE(from_mean.size() == 32 * 32 * 3);
   CHECK(from_mean == resample(mean, 16, 16, 3, 32, 32));
-  CHECK(from_last == resample(x3, 16, 16, 3, 32, 32));
-  CHECK(from_mean != from_last);
+  CHECK(from_mean != resample(x3, 16, 16, 3, 32, 32));  // what the last iterate would have given
 }
 
 TEST_CASE("config errors are one clear line naming the config", "[optimizer][errors]") {
