@@ -843,25 +843,29 @@ class Job {
     }
   }
 
+  // The image-schedule stage of iteration `it` (null after the last).
+  const Config::ImageStage* image_stage_at(int it) const {
+    for (const auto& s : c_.image_schedule)
+      if (it < s.until) return &s;
+    return nullptr;
+  }
+
   // The downsampling factor of iteration `it` (1: full resolution).
   int downsample_at(int it) const {
-    for (const auto& s : c_.image_schedule)
-      if (it < s.until) return s.downsample;
-    return 1;
+    const Config::ImageStage* s = image_stage_at(it);
+    return s ? s->downsample : 1;
   }
 
   // The block loss's k at iteration `it` (1: the loss of pixels).
   int loss_downsample_at(int it) const {
-    for (const auto& s : c_.image_schedule)
-      if (it < s.until) return s.loss_downsample > 0 ? s.loss_downsample : c_.loss_downsample;
-    return c_.loss_downsample;
+    const Config::ImageStage* s = image_stage_at(it);
+    return s && s->loss_downsample > 0 ? s->loss_downsample : c_.loss_downsample;
   }
 
   // The views rendered by iteration `it` (0: all).
   int views_at(int it) const {
-    for (const auto& s : c_.image_schedule)
-      if (it < s.until) return s.views_per_iteration >= 0 ? s.views_per_iteration : c_.views_per_iteration;
-    return c_.views_per_iteration;
+    const Config::ImageStage* s = image_stage_at(it);
+    return s && s->views_per_iteration >= 0 ? s->views_per_iteration : c_.views_per_iteration;
   }
 
   void apply_initial_values() {

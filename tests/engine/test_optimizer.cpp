@@ -512,6 +512,11 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
   expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "betas": [0.9, 1.0]}})"),
                "/parameters/floor.albedo/betas: expected [beta1, beta2], each in [0, 1)");
   expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "betas": 0.9}})"), "/parameters/floor.albedo/betas");
+  // A schedule stage's own iterate averaging: a non-negative iteration.
+  expect_error(
+      with_parameters(
+          R"({"floor.albedo": {"lr": 0.1, "schedule": [{"until": 2, "resolution": [8, 8], "average_from": -1}]}})"),
+      "/parameters/floor.albedo/schedule/0/average_from");
   // An image schedule: a factor that divides every view's resolution, stages in order.
   const std::string tail = R"("parameters": {"floor.albedo": {"lr": 0.1}}, "views": {"cameras": ["top"],
       "reference": {"set": {"floor.albedo": "truth.exr"}}}, )";
