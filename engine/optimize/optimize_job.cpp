@@ -22,6 +22,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
@@ -35,6 +36,7 @@
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
+#include "engine/optimize/regularizers.h"
 #include "engine/optimize/resample.h"
 #include "engine/scene/scene_load.h"
 #include "engine/scene/volume_io.h"
@@ -66,6 +68,7 @@ struct OptimizedParam {
   json init;  // null: keep the scene's value
   std::optional<Param> ground_truth;
   double tv_weight = 0;  // total-variation regularizer (grids and images)
+  double l1_weight = 0;  // sparsity: weight × mean |θ| (grids and images)
   // Iterate averaging (Polyak–Ruppert): with average_from = N ≥ 0 the result is the mean of the
   // values after iterations N+1, …, the last (restarted by a resolution change after N: the next
   // stage starts from the finished stage's average, resampled). It removes the jitter Monte Carlo
@@ -357,12 +360,21 @@ Config parse_config(const std::string& path) {
       a.lower = -1e30f, a.upper = 1e30f;
       op.bounds_outside_adam = true;
     }
-    if (p.has("regularizer")) {
-      Node r = p.child("regularizer");
-      const std::string type = r.string("type");
-      if (type != "tv") r.fail_at("type", "unknown regularizer '" + type + "' (expected \"tv\")");
-      op.tv_weight = r.number_required("weight", 0, 1e12);
-      r.finish();
+    if (const json* reg = p.find("regularizer")) {
+      // One {type, weight} or a list of them, each type at most once.
+      const bool list = reg->is_array();
+      const size_t count = list ? reg->size() : 1;
+      std::set<std::string> seen;
+      for (size_t i = 0; i < count; ++i) {
+        const std::string where = p.pointer("regularizer") + (list ? "/" + std::to_string(i) : "");
+        Node r(list ? (*reg)[i] : *reg, where, c.file);
+        const std::string type = r.string("type");
+        double* weight = type == "tv" ? &op.tv_weight : type == "l1" ? &op.l1_weight : nullptr;
+        if (!weight) r.fail_at("type", "unknown regularizer '" + type + "' (expected \"tv\" or \"l1\")");
+        if (!seen.insert(type).second) r.fail_at("type", "regularizer '" + type + "' given twice");
+        *weight = r.number_required("weight", 0, 1e12);
+        r.finish();
+      }
     }
     op.adam = Adam(a);
     p.finish();
@@ -399,41 +411,6 @@ void resize_param(Param& p, const Stage& s) {
     p.shape = {s.height, s.width, p.channels()};
   }
   p.grad.assign(p.value.size(), 0.f);
-}
-
-// Adds weight · ∂TV/∂θ to the gradient, TV = mean over cells of sqrt(|∇θ|² + ε²) with forward
-// differences in every direction of the image or grid (per channel), and returns weight · TV.
-double add_total_variation(Param& p, double weight) {
-  if (weight <= 0 || (!p.is_image() && !is_grid(p))) return 0;
-  const int c = p.shape.back();
-  const int nx = is_grid(p) ? p.shape[2] : p.shape[1], ny = is_grid(p) ? p.shape[1] : p.shape[0],
-            nz = is_grid(p) ? p.shape[0] : 1;
-  const double eps2 = 1e-6, cells = double(nx) * ny * nz * c;
-  auto at = [&](int x, int y, int z, int k) {
-    return ((size_t(z) * size_t(ny) + size_t(y)) * size_t(nx) + size_t(x)) * size_t(c) + size_t(k);
-  };
-  double tv = 0;
-  for (int z = 0; z < nz; ++z)
-    for (int y = 0; y < ny; ++y)
-      for (int x = 0; x < nx; ++x)
-        for (int k = 0; k < c; ++k) {
-          const size_t i = at(x, y, z, k);
-          const size_t nbr[3] = {at(std::min(x + 1, nx - 1), y, z, k), at(x, std::min(y + 1, ny - 1), z, k),
-                                 at(x, y, std::min(z + 1, nz - 1), k)};
-          double d[3], sum = eps2;
-          for (int a = 0; a < 3; ++a) {
-            d[a] = double(p.value[nbr[a]]) - p.value[i];
-            sum += d[a] * d[a];
-          }
-          const double len = std::sqrt(sum);
-          tv += len;
-          const double scale = weight / (cells * len);
-          for (int a = 0; a < 3; ++a) {
-            p.grad[nbr[a]] += float(scale * d[a]);
-            p.grad[i] -= float(scale * d[a]);
-          }
-        }
-  return weight * tv / cells;
 }
 
 // A log parametrization's floor: values below it enter log space as kLogFloor.
@@ -985,6 +962,7 @@ class Job {
         Param& param = scene_->params[p.handle];
         for (auto& g : param.grad) g /= float(per_iteration);
         loss += add_total_variation(param, p.tv_weight);
+        loss += add_l1(param, p.l1_weight);
         if (p.log_space) to_log_space(param.value, param.grad);
         if (p.large_steps) {
           std::vector<float> u = p.large_steps->to_u(param.value);

@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <random>
 
 #include <nlohmann/json.hpp>
 
@@ -17,6 +18,7 @@
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/mesh_distance.h"
 #include "engine/optimize/optimizer.h"
+#include "engine/optimize/regularizers.h"
 #include "engine/optimize/resample.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
@@ -422,6 +424,56 @@ TEST_CASE("a stage's own average_from averages within the stage, and the next st
   CHECK(from_mean != resample(x3, 16, 16, 3, 32, 32));  // what the last iterate would have given
 }
 
+// The regularizers' gradients against central differences of the values they return, on a grid
+// and on an image with values of both signs; a sign-flipped gradient fails the same check.
+TEST_CASE("regularizers: total variation and L1 gradients match finite differences", "[optimizer]") {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> u(0.05f, 1.f);  // |θ| away from L1's kink at 0
+  std::bernoulli_distribution negative(0.5);
+  auto make = [&](std::vector<int> shape) {
+    Param p;
+    p.shape = std::move(shape);
+    size_t n = 1;
+    for (int d : p.shape) n *= size_t(d);
+    p.value.resize(n);
+    for (float& v : p.value) v = negative(rng) ? -u(rng) : u(rng);
+    p.grad.assign(n, 0.f);
+    return p;
+  };
+  using Reg = double (*)(Param&, double);
+  for (const Reg reg : {Reg(add_total_variation), Reg(add_l1)}) {
+    for (const std::vector<int>& shape : {std::vector<int>{3, 4, 5, 2}, std::vector<int>{4, 6, 3}}) {
+      Param p = make(shape);
+      const double w = 0.7;
+      const double value = reg(p, w);
+      CHECK(value > 0);
+      const std::vector<float> grad = p.grad;
+      size_t agree = 0, flipped_agree = 0;
+      for (size_t i = 0; i < p.value.size(); ++i) {
+        const float x = p.value[i], h = 1e-3f;
+        p.value[i] = x + h;
+        const double up = reg(p, w);
+        p.value[i] = x - h;
+        const double down = reg(p, w);
+        p.value[i] = x;
+        const double fd = (up - down) / (2.0 * double(h));
+        const double tol = 2e-3 * w / double(p.value.size()) + 1e-3 * std::abs(fd);
+        INFO("element " << i << " fd " << fd << " analytic " << grad[i]);
+        CHECK(std::abs(grad[i] - fd) < tol);
+        agree += std::abs(grad[i] - fd) < tol;
+        flipped_agree += std::abs(-grad[i] - fd) < tol;
+      }
+      CHECK(agree == p.value.size());
+      CHECK(flipped_agree < p.value.size() / 10);
+    }
+  }
+  // Scalars and other parameters are left alone.
+  Param scalar = make({1});
+  CHECK(add_l1(scalar, 1.0) == 0.0);
+  CHECK(add_total_variation(scalar, 1.0) == 0.0);
+  CHECK(scalar.grad[0] == 0.f);
+}
+
 TEST_CASE("config errors are one clear line naming the config", "[optimizer][errors]") {
   const std::string dir = test::temp_dir("opt-errors");
   write_tiny_job(dir, 2);
@@ -460,6 +512,22 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1, "average_from": 2.5}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/parameters/floor.albedo/average_from");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "regularizer": {"type": "l2", "weight": 1}}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "bad.json: /parameters/floor.albedo/regularizer/type: unknown regularizer 'l2' (expected \"tv\" or \"l1\")");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "regularizer": [{"type": "l1", "weight": 1}, {"type": "l1", "weight": 2}]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "bad.json: /parameters/floor.albedo/regularizer/1/type: regularizer 'l1' given twice");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "regularizer": [{"type": "tv", "weight": -1}]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "bad.json: /parameters/floor.albedo/regularizer/0/weight");
+  expect_error(
+      head +
+          R"("parameters": {"floor.albedo": {"lr": 0.1, "regularizer": [3]}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
+      "bad.json: /parameters/floor.albedo/regularizer/0: expected an object");
   Image small(5, 5, 3);
   write_image(dir + "/small.exr", small);
   expect_error(
