@@ -194,11 +194,10 @@ struct PathStart {
   int medium = -1;       // the medium the ray starts in (the camera's), -1 = vacuum
 };
 
-// The walk of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking through
-// every medium on the way, crossing null surfaces, up to the first surface that is not null
-// (`blocked`, transmittance 0) or the segment's end. With `find_blockers` false the caller knows
-// nothing blocks the segment and only null surfaces are looked for. One tracking stream per
-// (path, vertex): the replay regenerates it.
+// The transmittance of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking
+// through every medium the walk (walk_shadow_segment, engine/scene/scene.h) crosses, 0 when a
+// surface that is not null blocks it. One tracking stream per (path, vertex): the replay
+// regenerates it.
 struct NoShadowEvents {
   void operator()(const Medium&, const Vec3f&, float, float) const {}
 };
@@ -210,34 +209,21 @@ struct ShadowWalk {
 };
 
 template <class T, class OnPoint = NoShadowEvents>
-ShadowWalk<T> shadow_transmittance(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, int medium,
+ShadowWalk<T> shadow_transmittance(const Scene& scene, const Vec3f& o, const Vec3f& d, float tmax, int medium,
                                    TrackingSampler& rng, bool find_blockers, OnPoint&& on_point = {}) {
   ShadowWalk<T> walk;
-  const bool intersect = find_blockers || scene.has_null_surfaces;
-  for (int k = 0; k <= kMaxNullCrossings; ++k) {
-    const Hit hit = intersect ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
-    const bool opaque = hit.mesh >= 0 && !scene.materials[size_t(scene.meshes[size_t(hit.mesh)].material)].is_null;
-    if (opaque) return {T(0.f), true};  // blocked: no need to track what lies before the blocker
-    const float seg = hit.mesh < 0 ? tmax : hit.t;
-    if (medium >= 0) {
-      const Medium& med = scene.media[size_t(medium)];
-      walk.transmittance =
-          walk.transmittance * medium_transmittance<T>(med, scene.params, o, d, seg, rng,
-                                                       [&](const Vec3f& x, float sigma, float majorant, bool) {
-                                                         on_point(med, x, sigma, majorant);
-                                                       });
-      if (value_of(walk.transmittance) == 0.f) return walk;
-    }
-    if (hit.mesh < 0) return walk;
-    const Mesh& m = scene.meshes[size_t(hit.mesh)];
-    const Vec3f ng = m.face_normals[size_t(hit.triangle)];
-    medium = scene.medium_after(m, d, ng, medium);
-    const Vec3f next = offset_origin(o + d * hit.t, ng, d);
-    tmax -= length(next - o);
-    o = next;
-    if (!(tmax > 0.f)) return walk;
-  }
-  return {T(0.f), true};  // as Scene::occluded: more null crossings than allowed count as blocked
+  walk.blocked =
+      walk_shadow_segment(scene, o, d, tmax, medium, find_blockers, [&](int m, const Vec3f& origin, float length) {
+        const Medium& med = scene.media[size_t(m)];
+        walk.transmittance =
+            walk.transmittance * medium_transmittance<T>(med, scene.params, origin, d, length, rng,
+                                                         [&](const Vec3f& x, float sigma, float majorant, bool) {
+                                                           on_point(med, x, sigma, majorant);
+                                                         });
+        return value_of(walk.transmittance) != 0.f;
+      });
+  if (walk.blocked) walk.transmittance = T(0.f);  // nothing before the blocker needs tracking
+  return walk;
 }
 
 inline TrackingSampler shadow_sampler(uint64_t path_key, int vertex) { return {path_key, vertex, 1u}; }

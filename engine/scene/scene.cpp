@@ -86,19 +86,7 @@ void Scene::prepare_sampling_only() {
 
 bool Scene::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {
   if (!has_null_surfaces) return geometry->occluded(o, d, tmax);
-  Ray ray{o, d, 0.f, tmax};
-  for (int k = 0; k <= kMaxNullCrossings; ++k) {
-    const Hit hit = geometry->intersect(ray);
-    if (hit.mesh < 0) return false;
-    const Mesh& m = meshes[size_t(hit.mesh)];
-    if (!materials[size_t(m.material)].is_null) return true;
-    const Vec3f p = ray.origin + ray.direction * hit.t;
-    const Vec3f next = offset_origin(p, m.face_normals[size_t(hit.triangle)], d);
-    ray.tmax -= length(next - ray.origin);
-    ray.origin = next;
-    if (!(ray.tmax > 0.f)) return false;
-  }
-  return true;
+  return walk_shadow_segment(*this, o, d, tmax, -1, true, [](int, const Vec3f&, float) { return true; });
 }
 
 SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {

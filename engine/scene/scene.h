@@ -175,4 +175,31 @@ inline Vec3f offset_origin(const Vec3f& p, const Vec3f& geometric_normal, const 
   return p + geometric_normal * (dot(geometric_normal, direction) > 0.f ? scale : -scale);
 }
 
+// Walks a shadow segment o + t·d, t < tmax, starting in `medium` (−1: vacuum), across null
+// surfaces (index-matched boundaries: only the medium changes) up to the first surface that is
+// not null or the segment's end. on_piece(medium, origin, length) is called for every piece
+// between crossings that lies in a medium and returns false to end the walk there (a
+// transmittance that reached 0). Returns whether a non-null surface blocks the segment; more than
+// kMaxNullCrossings crossings count as blocked. With `find_blockers` false the caller knows nothing
+// blocks it, and rays are cast only when there are null surfaces to find.
+template <class OnPiece>
+bool walk_shadow_segment(const Scene& scene, Vec3f o, const Vec3f& d, float tmax, int medium, bool find_blockers,
+                         OnPiece&& on_piece) {
+  const bool intersect = find_blockers || scene.has_null_surfaces;
+  for (int k = 0; k <= kMaxNullCrossings; ++k) {
+    const Hit hit = intersect ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
+    if (hit.mesh >= 0 && !scene.materials[size_t(scene.meshes[size_t(hit.mesh)].material)].is_null) return true;
+    if (medium >= 0 && !on_piece(medium, o, hit.mesh < 0 ? tmax : hit.t)) return false;
+    if (hit.mesh < 0) return false;
+    const Mesh& m = scene.meshes[size_t(hit.mesh)];
+    const Vec3f ng = m.face_normals[size_t(hit.triangle)];
+    medium = scene.medium_after(m, d, ng, medium);
+    const Vec3f next = offset_origin(o + d * hit.t, ng, d);
+    tmax -= length(next - o);
+    o = next;
+    if (!(tmax > 0.f)) return false;
+  }
+  return true;
+}
+
 }  // namespace bl
