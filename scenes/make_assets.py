@@ -467,6 +467,9 @@ def check_gltf(path):
 
 
 SMOKE = SCENES / "smoke"
+# The plume's two holes: centre (x, y, z) and radius in the grid's unit cube (tools/smoke_regions
+# measures the recovered density's error in and around them).
+SMOKE_HOLES = ((0.55, 0.45, 0.5, 0.09), (0.42, 0.7, 0.45, 0.08))
 
 
 def smoke_density(n=128, seed=3):
@@ -492,7 +495,7 @@ def smoke_density(n=128, seed=3):
         wave += np.sin(2 * np.pi * (k[0] * x + k[1] * y + k[2] * z) + rng.uniform(0, 2 * np.pi))
     rho *= np.clip(0.6 + 0.2 * wave, 0.0, None)
     # Holes.
-    for hx, hy, hz, hr in ((0.55, 0.45, 0.5, 0.09), (0.42, 0.7, 0.45, 0.08)):
+    for hx, hy, hz, hr in SMOKE_HOLES:
         rho[(x - hx) ** 2 + (y - hy) ** 2 + (z - hz) ** 2 < hr * hr] = 0.0
     rho *= np.clip((0.47 - np.sqrt((x - 0.5) ** 2 + (z - 0.5) ** 2)) / 0.05, 0.0, 1.0)  # fade at the sides
     rho *= np.clip((0.97 - y) / 0.05, 0.0, 1.0) * np.clip((y - 0.03) / 0.05, 0.0, 1.0)
