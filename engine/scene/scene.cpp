@@ -129,8 +129,9 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
   EmitterSample s;
   s.point = m.positions[i0] * b0 + m.positions[i1] * b1 + m.positions[i2] * b2;
   const Vec3f n = m.face_normals[t];
+  // Only the side of the interpolated shading normal matters (below): no need to normalize it.
   Vec3f shading = n;
-  if (!m.normals.empty()) shading = normalize(m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2);
+  if (!m.normals.empty()) shading = m.normals[i0] * b0 + m.normals[i1] * b1 + m.normals[i2] * b2;
   if (!m.uvs.empty())
     s.uv = {m.uvs[i0].x * b0 + m.uvs[i1].x * b1 + m.uvs[i2].x * b2,
             m.uvs[i0].y * b0 + m.uvs[i1].y * b1 + m.uvs[i2].y * b2};
