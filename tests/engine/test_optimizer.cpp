@@ -512,20 +512,6 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
       head +
           R"("parameters": {"floor.albedo": {"lr": 0.1, "average_from": 2.5}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})",
       "/parameters/floor.albedo/average_from");
-  // Regularizers: one {type, weight} or a list, each type once.
-  auto albedo_with = [&](const std::string& keys) {
-    return head + R"("parameters": {"floor.albedo": {"lr": 0.1, )" + keys +
-           R"(}}, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})";
-  };
-  expect_error(
-      albedo_with(R"("regularizer": {"type": "l2", "weight": 1})"),
-      "bad.json: /parameters/floor.albedo/regularizer/type: unknown regularizer 'l2' (expected \"tv\" or \"l1\")");
-  expect_error(albedo_with(R"("regularizer": [{"type": "l1", "weight": 1}, {"type": "l1", "weight": 2}])"),
-               "bad.json: /parameters/floor.albedo/regularizer/1/type: regularizer 'l1' given twice");
-  expect_error(albedo_with(R"("regularizer": [{"type": "tv", "weight": -1}])"),
-               "bad.json: /parameters/floor.albedo/regularizer/0/weight");
-  expect_error(albedo_with(R"("regularizer": [3])"),
-               "bad.json: /parameters/floor.albedo/regularizer/0: expected an object");
   Image small(5, 5, 3);
   write_image(dir + "/small.exr", small);
   expect_error(
@@ -550,6 +536,18 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
     return head + R"("parameters": )" + parameters +
            R"(, "views": {"cameras": ["top"], "reference": {"set": {"floor.albedo": "truth.exr"}}}})";
   };
+  // Regularizers: one {type, weight} or a list, each type once.
+  expect_error(
+      with_parameters(R"({"floor.albedo": {"lr": 0.1, "regularizer": {"type": "l2", "weight": 1}}})"),
+      "bad.json: /parameters/floor.albedo/regularizer/type: unknown regularizer 'l2' (expected \"tv\" or \"l1\")");
+  expect_error(
+      with_parameters(
+          R"({"floor.albedo": {"lr": 0.1, "regularizer": [{"type": "l1", "weight": 1}, {"type": "l1", "weight": 2}]}})"),
+      "bad.json: /parameters/floor.albedo/regularizer/1/type: regularizer 'l1' given twice");
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "regularizer": [{"type": "tv", "weight": -1}]}})"),
+               "bad.json: /parameters/floor.albedo/regularizer/0/weight");
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "regularizer": [3]}})"),
+               "bad.json: /parameters/floor.albedo/regularizer/0: expected an object");
   expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "large_steps": {"lambda": 10}}})"),
                "/parameters/floor.albedo/large_steps: only for a mesh's positions");
   expect_error(with_parameters(R"({"floor.positions": {"lr": 0.1, "bounds": [0, 1], "large_steps": {"lambda": 10}}})"),
