@@ -8,8 +8,8 @@ namespace bl {
 double add_total_variation(Param& p, double weight) {
   if (weight <= 0 || (!p.is_image() && p.shape.size() != 4)) return 0;
   const int c = p.shape.back();
-  const int nx = p.shape.size() == 4 ? p.shape[2] : p.shape[1], ny = p.shape.size() == 4 ? p.shape[1] : p.shape[0],
-            nz = p.shape.size() == 4 ? p.shape[0] : 1;
+  const bool grid = p.shape.size() == 4;  // [Z, Y, X, C], else an image [H, W, C]
+  const int nx = grid ? p.shape[2] : p.shape[1], ny = grid ? p.shape[1] : p.shape[0], nz = grid ? p.shape[0] : 1;
   const double eps2 = 1e-6, cells = double(nx) * ny * nz * c;
   auto at = [&](int x, int y, int z, int k) {
     return ((size_t(z) * size_t(ny) + size_t(y)) * size_t(nx) + size_t(x)) * size_t(c) + size_t(k);

@@ -14,14 +14,12 @@ tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
 
 /usr/bin/python3 - "$tmp" "$repo" <<'PY' || fail "writing the grids"
-import struct, sys
+import sys
 import numpy as np
 sys.path.insert(0, sys.argv[2] + "/scenes")
 import make_assets
 def vol(path, rho):
-    nz, ny, nx = rho.shape
-    open(path, "wb").write(b"VOL" + bytes([3]) + struct.pack("<5i", 1, nx, ny, nz, 1)
-                           + struct.pack("<6f", -1, 0, -1, 1, 2, 1) + rho.astype("<f4").tobytes())
+    open(path, "wb").write(make_assets.vol_bytes(rho, (-1.0, 0.0, -1.0, 1.0, 2.0, 1.0)))
 vol(sys.argv[1] + "/truth.vol", make_assets.smoke_density())
 vol(sys.argv[1] + "/zero.vol", np.zeros((4, 4, 4)))
 vol(sys.argv[1] + "/tenth.vol", np.full((8, 8, 8), 0.1))
