@@ -192,6 +192,33 @@ struct PathStart {
   int first_vertex = 1;
   float bsdf_pdf = 0.f;  // 0: the ray was not BSDF-sampled (no MIS on what it hits)
   int medium = -1;       // the medium the ray starts in (the camera's), -1 = vacuum
+  // What `ray` hits, when the caller has traced it already (a pixel's camera rays go through
+  // Embree as one packet: Geometry::intersect_packet, the same hits as one by one).
+  const Hit* first_hit = nullptr;
+};
+
+// Up to Geometry::kPacket camera rays of one pixel and their first hits, traced as one Embree
+// packet: a pixel's samples start from nearly the same ray, so the packet traversal visits the
+// BVH about once for all of them (Geometry::intersect_packet; the hits are exactly those of
+// single-ray queries). Every pass starts its paths this way, so the primal, prb (first run and
+// replay), rb and the taped mode follow the same paths.
+struct CameraPacket {
+  Ray rays[Geometry::kPacket];
+  Hit hits[Geometry::kPacket];
+  int medium = -1;
+  // Traces the camera rays of samples sample_of(0 .. count-1) of pixel (x, y), count ≤ kPacket.
+  template <class SampleOf>
+  void trace(const Scene& scene, const Camera& cam, uint64_t seed, int x, int y, int count, SampleOf sample_of) {
+    const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+    for (int k = 0; k < count; ++k) {
+      const PathSampler sampler(seed, pixel, uint64_t(sample_of(k)));
+      rays[k] = cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY));
+    }
+    medium = cam.medium;
+    scene.geometry->intersect_packet(rays, count, hits);
+  }
+  // The k-th path's start (valid while this packet lives).
+  PathStart start(int k) const { return PathStart{rays[k], 1, 0.f, medium, &hits[k]}; }
 };
 
 // The transmittance of the shadow segment o + t·d, t < tmax, starting in `medium`: ratio tracking
@@ -315,9 +342,11 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
   uint32_t flight = 0;    // free-flight tracking streams used so far
   int null_crossings = 0;
 
+  const Hit* traced = start.first_hit;  // the first segment's hit, when given
   for (int vertex = start.first_vertex;;) {
     if (!observer.follows(vertex)) break;
-    const Hit hit = scene.geometry->intersect(ray);
+    const Hit hit = traced ? *traced : scene.geometry->intersect(ray);
+    traced = nullptr;
     const bool visible_emitter = !(vertex == 1 && st.hide_emitters);
 
     // Inside a medium: free flight up to the surface (or to infinity).

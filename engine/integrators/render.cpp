@@ -45,11 +45,14 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
         Vec3d sum(0.0);  // double: the mean of many samples does not drift with spp
-        for (int s = 0; s < o.spp; ++s) {
-          PathSampler sampler(o.seed, pixel, uint64_t(s));
-          PathStart start{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
-                          cam.medium};
-          sum += Vec3d(trace_path<float>(scene, start, sampler, none));
+        CameraPacket packet;
+        for (int s0 = 0; s0 < o.spp; s0 += Geometry::kPacket) {
+          const int n = std::min(Geometry::kPacket, o.spp - s0);
+          packet.trace(scene, cam, o.seed, x, y, n, [&](int k) { return s0 + k; });
+          for (int k = 0; k < n; ++k) {
+            const PathSampler sampler(o.seed, pixel, uint64_t(s0 + k));
+            sum += Vec3d(trace_path<float>(scene, packet.start(k), sampler, none));
+          }
         }
         const Vec3f mean(sum / double(o.spp));
         for (int c = 0; c < 3; ++c) image.at(x, y, c) = mean[c];

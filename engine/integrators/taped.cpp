@@ -90,11 +90,14 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
       for (int x = x0; x < x1; ++x) {
         const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
         Spectrum<Var> sum(Var(0.f));
-        for (int s = 0; s < rq.pass.spp; ++s) {
-          PathSampler sampler(rq.pass.seed, pixel, uint64_t(s));
-          PathStart start{cam.generate(float(x) + sampler.get(Dim::kPixelX), float(y) + sampler.get(Dim::kPixelY)), 1, 0.f,
-                          cam.medium};
-          sum += trace_path<Var>(scene, start, sampler, none);
+        CameraPacket packet;  // the camera rays as render() traces them
+        for (int s0 = 0; s0 < rq.pass.spp; s0 += Geometry::kPacket) {
+          const int n = std::min(Geometry::kPacket, rq.pass.spp - s0);
+          packet.trace(scene, cam, rq.pass.seed, x, y, n, [&](int k) { return s0 + k; });
+          for (int k = 0; k < n; ++k) {
+            const PathSampler sampler(rq.pass.seed, pixel, uint64_t(s0 + k));
+            sum += trace_path<Var>(scene, packet.start(k), sampler, none);
+          }
         }
         Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
         PixelOutput& out = outputs[pixel];

@@ -84,6 +84,45 @@ Hit Geometry::intersect(const Ray& ray) const {
   return h;
 }
 
+void Geometry::intersect_packet(const Ray* rays, int count, Hit* out) const {
+  RTCIntersectContext context;
+  rtcInitIntersectContext(&context);
+  context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  alignas(32) int valid[kPacket];
+  alignas(32) RTCRayHit8 rh;
+  for (int i = 0; i < kPacket; ++i) {
+    const bool active = i < count;
+    valid[i] = active ? -1 : 0;
+    const Ray& r = rays[active ? i : 0];
+    rh.ray.org_x[i] = r.origin.x;
+    rh.ray.org_y[i] = r.origin.y;
+    rh.ray.org_z[i] = r.origin.z;
+    rh.ray.dir_x[i] = r.direction.x;
+    rh.ray.dir_y[i] = r.direction.y;
+    rh.ray.dir_z[i] = r.direction.z;
+    rh.ray.tnear[i] = r.tmin;
+    rh.ray.tfar[i] = r.tmax;
+    rh.ray.mask[i] = 0xffffffffu;
+    rh.ray.flags[i] = 0;
+    rh.ray.time[i] = 0.f;
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  rtcIntersect8(valid, scene_, &context, &rh);
+  tls_ray_count += uint64_t(count);
+  for (int i = 0; i < count; ++i) {
+    Hit h;
+    if (rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID) {
+      h.t = rh.ray.tfar[i];
+      h.mesh = int(rh.hit.geomID[i]);
+      h.triangle = int(rh.hit.primID[i]);
+      h.b1 = rh.hit.u[i];
+      h.b2 = rh.hit.v[i];
+    }
+    out[i] = h;
+  }
+}
+
 bool Geometry::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);

@@ -4,8 +4,8 @@
 
 #include <vector>
 
-#include "engine/scene/camera.h"
 #include "engine/core/math.h"
+#include "engine/scene/camera.h"
 
 namespace bl {
 
@@ -30,6 +30,10 @@ class Geometry {
   void build(const std::vector<Mesh>& meshes);
   Hit intersect(const Ray& ray) const;
   bool occluded(const Vec3f& origin, const Vec3f& direction, float tmax) const;
+  // Up to kPacket coherent rays (e.g. one pixel's camera rays) traced together through Embree's
+  // packet traversal: out[i] is exactly what intersect(rays[i]) returns (tests), in less time.
+  static constexpr int kPacket = 8;
+  void intersect_packet(const Ray* rays, int count, Hit* out) const;
   // Rays (closest-hit and shadow) cast so far by the calling thread; callers take differences.
   static uint64_t thread_ray_count();
 
