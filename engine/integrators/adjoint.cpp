@@ -85,6 +85,7 @@ struct ReplayObserver {
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
   bool follows(int vertex) const { return vertex <= last_site; }
   void reached(int, int) {}
+  void tracked(int) {}
   void nee(const VertexRef& v, const Vec3f& wi, const EmissionRef& e, const Vec3f& bsdf_weight,
            const Vec3f& emitter_weight, const Vec3f&) {
     if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
@@ -178,6 +179,7 @@ struct RadiativeObserver {
   bool nee_may_contribute(int vertex) const { return replay_nee_may_contribute(visibility, vertex); }
   bool follows(int vertex) const { return vertex <= last_site; }
   void reached(int, int) {}
+  void tracked(int) {}
 };
 
 }  // namespace
@@ -202,7 +204,7 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   // never meet one are not replayed at all). The gradient is the same: what is skipped adds
   // nothing.
   const DerivativeSites sites = derivative_sites(scene, GradientAccumulator(&scene.params));
-  const bool media_grads = sites.everywhere;
+  const bool media_grads = sites.tracking;
   tbb::enumerable_thread_specific<Scratch> scratch([&] {
     return Scratch{std::vector<SampleRecord>(size_t(o.spp)), {}};
   });

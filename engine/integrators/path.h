@@ -85,6 +85,9 @@ struct NoObserver {
   // Whether the path is worth following into iteration `vertex` (a replay stops after the last
   // vertex that can produce a derivative).
   bool follows(int) const { return true; }
+  // Iteration `vertex` tracked a medium: a free-flight segment inside one, or a shadow ray through
+  // one (every observer hears it; the first run of prb notes it as a derivative site).
+  void tracked(int) {}
 };
 
 inline constexpr int kSiteEscape = -1;  // the ray left the scene (environment emission)
@@ -95,14 +98,13 @@ inline constexpr int kSiteMedium = -2;  // a real collision in a medium
 // an emitter whose radiance does, or, when any emitter's radiance does, if it is a scattering
 // surface at all (its light sample reaches that emitter). Escaped rays count when the
 // environment's radiance wants a gradient, medium vertices when any emitter does. With a
-// gradient on any medium parameter everything counts: null collisions and shadow rays through
-// media carry derivatives at every iteration.
+// gradient on any medium parameter, every iteration that tracks a medium counts as well (its
+// tentative collisions, medium vertex and shadow-ray tracking carry derivatives): `tracking`.
 struct DerivativeSites {
   std::vector<uint8_t> mesh;
-  bool escape = false, medium = false, everywhere = false;
+  bool escape = false, medium = false, tracking = false;
 
   bool at(int site) const {
-    if (everywhere) return true;
     if (site == kSiteEscape) return escape;
     if (site == kSiteMedium) return medium;
     return mesh[size_t(site)] != 0;
@@ -114,8 +116,8 @@ inline DerivativeSites derivative_sites(const Scene& scene, const GradientAccumu
   bool emitters = grads.wants(scene.environment.present ? scene.environment.param : -1);
   for (const AreaEmitter& e : scene.area_emitters) emitters = emitters || grads.wants(e.radiance.param);
   for (const Medium& m : scene.media)
-    d.everywhere =
-        d.everywhere || grads.wants(m.density) || grads.wants(m.scale) || grads.wants(m.albedo) || grads.wants(m.g);
+    d.tracking =
+        d.tracking || grads.wants(m.density) || grads.wants(m.scale) || grads.wants(m.albedo) || grads.wants(m.g);
   d.escape = scene.environment.present && grads.wants(scene.environment.param);
   d.medium = emitters;
   d.mesh.resize(scene.meshes.size());
@@ -146,6 +148,9 @@ struct VisibilityRecorder : NoObserver {
   int last_site = 0;
   void reached(int vertex, int site) {
     if (!sites || sites->at(site)) last_site = vertex;
+  }
+  void tracked(int vertex) {
+    if (!sites || sites->tracking) last_site = vertex;
   }
   template <class Blocked>
   bool occluded(int vertex, Blocked&& query) {
@@ -233,6 +238,7 @@ template <class T>
 struct ShadowWalk {
   T transmittance = T(1.f);
   bool blocked = false;
+  bool tracked = false;  // the walk crossed a medium (tracked it, or stopped at a blocker in it)
 };
 
 template <class T, class OnPoint = NoShadowEvents>
@@ -242,6 +248,7 @@ ShadowWalk<T> shadow_transmittance(const Scene& scene, const Vec3f& o, const Vec
   walk.blocked =
       walk_shadow_segment(scene, o, d, tmax, medium, find_blockers, [&](int m, const Vec3f& origin, float length) {
         const Medium& med = scene.media[size_t(m)];
+        walk.tracked = true;
         walk.transmittance =
             walk.transmittance * medium_transmittance<T>(med, scene.params, origin, d, length, rng,
                                                          [&](const Vec3f& x, float sigma, float majorant, bool) {
@@ -283,16 +290,20 @@ bool trace_shadow_ray(const Scene& scene, Observer& observer, uint64_t path_key,
   transmittance = T(1.f);
   if (scene.media.empty()) return !observer.occluded(vertex, [&] { return scene.occluded(o, d, tmax); });
   TrackingSampler rng = shadow_sampler(path_key, vertex);
-  bool tracked = false;
+  bool walked = false;
   const bool blocked = observer.occluded(vertex, [&] {
-    tracked = true;
+    walked = true;
     const ShadowWalk<T> walk = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, true, observer);
+    if (walk.tracked) observer.tracked(vertex);
     transmittance = walk.transmittance;
     return walk.blocked;
   });
   if (blocked) return false;
-  if (!tracked)
-    transmittance = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, false, observer).transmittance;
+  if (!walked) {
+    const ShadowWalk<T> walk = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, false, observer);
+    if (walk.tracked) observer.tracked(vertex);
+    transmittance = walk.transmittance;
+  }
   return true;
 }
 
@@ -351,6 +362,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
     // Inside a medium: free flight up to the surface (or to infinity).
     if (medium >= 0) {
+      observer.tracked(vertex);
       const Medium& med = scene.media[size_t(medium)];
       TrackingSampler rng(sampler.key(), int(flight++), 0x10000u);
       const float t_max = hit.mesh < 0 ? std::numeric_limits<float>::infinity() : hit.t;

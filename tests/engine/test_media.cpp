@@ -291,8 +291,10 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
 TEST_CASE("pruned replays through media give the same gradient", "[media][replay]") {
   // As for surfaces (test_gradients): one thread, bitwise equal gradients with and without
   // stopping replays after the last vertex that can produce a derivative. A surface parameter
-  // alone leaves medium vertices out of the sites (shorter replays); any medium parameter makes
-  // every iteration a site (null collisions and shadow rays through the fog carry derivatives).
+  // alone leaves medium vertices out of the sites (shorter replays); a medium parameter makes
+  // every iteration that tracks the fog a site (its null collisions, medium vertex and shadow rays
+  // through the fog carry derivatives), so paths whose tail never meets the fog again are cut
+  // short there too.
   tbb::global_control one_thread(tbb::global_control::max_allowed_parallelism, 1);
   FogOptions o;
   o.resolution = 16;
@@ -321,7 +323,7 @@ TEST_CASE("pruned replays through media give the same gradient", "[media][replay
     if (std::string(name) == "wall.albedo")
       CHECK(double(pruned.rays) < 0.9 * double(whole.rays));
     else if (std::string(name).rfind("fog.", 0) == 0)
-      CHECK(pruned.rays == whole.rays);
+      CHECK(double(pruned.rays) < 0.95 * double(whole.rays));  // 11468 against 13292 rays
     else
       CHECK(pruned.rays <= whole.rays);
   }
