@@ -268,8 +268,9 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
               trace_path<float>(scene, packet.start(k), sampler, replay);
               replay.flush();
             } else {
-              RadiativeObserver rb{scene,           grads, delta, o.seed, pixel, uint64_t(s), record.visibility,
-                                   record.last_site};
+              RadiativeObserver rb{
+                  scene, grads, delta, o.seed, pixel, uint64_t(s), record.visibility, record.last_site,
+              };
               trace_path<float>(scene, packet.start(k), sampler, rb);
               rb.flush();
             }

@@ -204,9 +204,11 @@ struct PathStart {
 
 // Up to Geometry::kPacket camera rays of one pixel and their first hits, traced as one Embree
 // packet: a pixel's samples start from nearly the same ray, so the packet traversal visits the
-// BVH about once for all of them (Geometry::intersect_packet; the hits are exactly those of
-// single-ray queries). Every pass starts its paths this way, so the primal, prb (first run and
-// replay), rb and the taped mode follow the same paths.
+// BVH about once for all of them (Geometry::intersect_packet: the single-ray hits, but for ties
+// on shared edges, which it may give to the other triangle). The primal, prb (first run and
+// replay), rb and the taped mode all start their paths this way, so they follow the same paths.
+// (The geometry-gradient passes, engine/integrators/interior.cpp and boundary.cpp, trace their
+// own camera rays.)
 struct CameraPacket {
   Ray rays[Geometry::kPacket];
   Hit hits[Geometry::kPacket];

@@ -242,16 +242,22 @@ TEST_CASE("PathSampler streams regenerate identically on any thread", "[determin
 }
 
 // Every pass starts its paths from a pixel's camera rays traced as one Embree packet
-// (CameraPacket, engine/integrators/path.h). The images stay bitwise those of single-ray
-// traversal only if the packet's hits are exactly the single-ray hits: checked here on the bundled
-// scenes, 8 jittered camera rays per pixel on every 4th pixel of each axis, packets of 8 and of
-// fewer rays (a pixel's last packet when spp is not a multiple of 8).
-TEST_CASE("camera ray packets hit exactly what single rays hit", "[determinism]") {
+// (CameraPacket, engine/integrators/path.h), so all passes follow the same paths whatever the
+// packet returns; what is checked here is that it returns the single-ray answer: the same mesh
+// and distance, bitwise, and the same triangle and barycentrics except where the ray meets an edge
+// shared by two triangles at one distance, a tie the two traversals may break differently (5 of
+// 14.2 M jittered camera rays of the volume job's 24 views, 2026-11-26: the other triangle, the
+// same point). On the bundled scenes, 8 jittered camera rays per pixel on every 4th pixel of each
+// axis, packets of 1 to 8 rays (a pixel's last packet when spp is not a multiple of 8).
+TEST_CASE("camera ray packets hit what single rays hit", "[determinism]") {
+  auto on_edge = [](const Hit& h) {
+    return std::min({h.b1, h.b2, 1.f - h.b1 - h.b2}) <= 1e-6f;  // a barycentric at 0: on an edge
+  };
   for (const char* name :
        {"scenes/cornell/scene.json", "scenes/mitsuba-cornell/scene.json", "scenes/smoke/scene.json"}) {
     auto scene = load_scene(std::string(BL_SOURCE_DIR) + "/" + name);
     const Camera& cam = scene->cameras[0];
-    long differ = 0, traced = 0, hits = 0;
+    long traced = 0, hits = 0, ties = 0, wrong = 0;
     for (int y = 0; y < cam.height; y += 4)
       for (int x = 0; x < cam.width; x += 4) {
         Ray rays[Geometry::kPacket];
@@ -262,14 +268,18 @@ TEST_CASE("camera ray packets hit exactly what single rays hit", "[determinism]"
         const int count = 1 + (x / 4 + y / 4) % Geometry::kPacket;  // 1 to 8 rays
         scene->geometry->intersect_packet(rays, count, packet);
         for (int k = 0; k < count; ++k) {
-          const Hit single = scene->geometry->intersect(rays[k]);
+          const Hit single = scene->geometry->intersect(rays[k]), p = packet[k];
           ++traced;
           hits += single.mesh >= 0;
-          differ += std::memcmp(&single, &packet[k], sizeof(Hit)) != 0;
+          if (std::memcmp(&single, &p, sizeof(Hit)) == 0) continue;
+          const bool tie =
+              single.mesh == p.mesh && single.t == p.t && single.mesh >= 0 && on_edge(single) && on_edge(p);
+          (tie ? ties : wrong) += 1;
         }
       }
-    INFO(name << ": " << differ << " of " << traced << " rays differ");
-    CHECK(differ == 0);
+    INFO(name << ": " << traced << " rays, " << ties << " edge ties, " << wrong << " other differences");
+    CHECK(wrong == 0);
+    CHECK(double(ties) <= 1e-4 * double(traced));
     CHECK(hits > traced / 4);  // the rays do hit the scene (not a comparison of misses only)
   }
 }
