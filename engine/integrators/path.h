@@ -293,19 +293,15 @@ bool trace_shadow_ray(const Scene& scene, Observer& observer, uint64_t path_key,
   if (scene.media.empty()) return !observer.occluded(vertex, [&] { return scene.occluded(o, d, tmax); });
   TrackingSampler rng = shadow_sampler(path_key, vertex);
   bool walked = false;
-  const bool blocked = observer.occluded(vertex, [&] {
+  auto walk = [&](bool find_blockers) {  // tracks the ray, tells the observer when a medium was met
     walked = true;
-    const ShadowWalk<T> walk = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, true, observer);
-    if (walk.tracked) observer.tracked(vertex);
-    transmittance = walk.transmittance;
-    return walk.blocked;
-  });
-  if (blocked) return false;
-  if (!walked) {
-    const ShadowWalk<T> walk = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, false, observer);
-    if (walk.tracked) observer.tracked(vertex);
-    transmittance = walk.transmittance;
-  }
+    const ShadowWalk<T> w = observed_shadow_transmittance<T>(scene, o, d, tmax, medium, rng, find_blockers, observer);
+    if (w.tracked) observer.tracked(vertex);
+    transmittance = w.transmittance;
+    return w.blocked;
+  };
+  if (observer.occluded(vertex, [&] { return walk(true); })) return false;
+  if (!walked) walk(false);
   return true;
 }
 
