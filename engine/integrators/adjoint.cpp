@@ -70,6 +70,7 @@ struct ReplayObserver {
   }
   // Must be called once the path is done.
   void flush() {
+    flush_real();
     if (pending)
       pending_ref.material->texture_backprop(scene.params, pending_ref.uv, pending_gradient, grads, pending_ref.tint);
     pending = nullptr;
@@ -91,10 +92,32 @@ struct ReplayObserver {
     if (v.material->wants_grad(grads)) add_bsdf_adjoint(v, wi, delta * bsdf_weight);
     emitter_backprop(scene, e, delta * emitter_weight, grads);
   }
+  // A real collision's score term waits for its vertex's light sample when light derivatives
+  // leave that sample out of it (medium_light_derivative in path.h).
+  struct PendingReal {
+    const Medium* medium = nullptr;
+    Vec3f x;
+    float sigma = 0.f, rest = 0.f;
+  } pending_real;
+  void flush_real() {
+    if (pending_real.medium && pending_real.rest != 0.f)
+      pending_real.medium->backprop_sigma_t(scene.params, pending_real.x, pending_real.rest / pending_real.sigma,
+                                            grads);
+    pending_real.medium = nullptr;
+  }
+  bool light_derivatives(const Medium& m) const { return m.light_derivatives > 0.f && m.wants_sigma_grad(grads); }
+  void flight_light(const Medium& m, const Vec3f& x, const Vec3f& weighted) {
+    const float w = dot(delta, weighted);
+    if (w != 0.f) m.backprop_sigma_t(scene.params, x, w, grads);
+  }
   void flight_collision(const Medium& m, const Vec3f& x, float sigma, float majorant, bool real,
                         const Vec3f& radiance_so_far) {
     if (!m.wants_sigma_grad(grads)) return;
     const float rest = dot(delta, total_radiance - radiance_so_far);
+    if (real && light_derivatives(m) && m.light_derivative_at(sigma, majorant)) {
+      pending_real = {&m, x, sigma, rest};
+      return;
+    }
     if (rest == 0.f) return;
     if (real)
       m.backprop_sigma_t(scene.params, x, rest / sigma, grads);
@@ -105,12 +128,14 @@ struct ReplayObserver {
                   const EmissionRef& e, const Vec3f& emitter_weight, const Vec3f& contribution) {
     emitter_backprop(scene, e, delta * emitter_weight, grads);
     const float weight = dot(delta, contribution);
+    if (pending_real.medium) pending_real.rest -= weight;
     if (weight == 0.f) return;
     if (phase_value > 0.f) m.backprop_phase(scene.params, wi, wl, weight / phase_value, grads);
     shadow_transmittance_backprop(scene, *shadow_points, weight, grads);
   }
   void medium_vertex(const Medium& m, const Vec3f& x, const Vec3f& wi, const Vec3f& wo, const Vec3f& albedo,
                      const Vec3f& radiance_before, const Vec3f& radiance_after_nee) {
+    flush_real();
     const Vec3f rest = total_radiance - radiance_before;
     Vec3f adjoint;
     for (int c = 0; c < 3; ++c) adjoint[c] = albedo[c] != 0.f ? delta[c] * rest[c] / albedo[c] : 0.f;
@@ -165,6 +190,8 @@ struct RadiativeObserver {
   // rb refuses scenes with media (compute_gradient): its independent estimates would start in
   // the wrong medium.
   void flight_collision(const Medium&, const Vec3f&, float, float, bool, const Vec3f&) {}
+  void flight_light(const Medium&, const Vec3f&, const Vec3f&) {}
+  bool light_derivatives(const Medium&) const { return false; }
   void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
                      const Vec3f&) {}
   void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,

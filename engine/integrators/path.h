@@ -65,6 +65,10 @@ struct NoObserver {
   void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,
                   const Vec3f&) {}
   void shadow(const Vec3f&) {}
+  // A derivative-only light sample at a tentative collision (medium_light_derivative): ∂σ_t(x)
+  // gets ⟨δ, weighted⟩. Whether the loop should take them for medium m at all:
+  void flight_light(const Medium&, const Vec3f&, const Vec3f&) {}
+  bool light_derivatives(const Medium& m) const { return m.light_derivatives > 0.f; }
   void emission(const EmissionRef&, const Vec3f&, const Vec3f&) {}
   void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
   void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
@@ -316,6 +320,45 @@ inline void shadow_transmittance_backprop(const Scene& scene, const std::vector<
       p.medium->backprop_sigma_t(scene.params, p.x, -weight / (p.majorant - p.sigma), grads);
 }
 
+// Density derivatives from light samples at tentative collisions (Medium::light_derivatives = f >
+// 0). A real collision of delta tracking at x (probability σ_t/σ̄) gives ∂σ_t(x) the score term
+// ⟨δ, rest⟩/σ_t; rest includes the vertex's own light sample, whose share of that term has the
+// expectation ∂σ_t(x)·E[light sample at x]/σ̄ and a variance of order 1/σ_t — large where the
+// medium is thin against its majorant (the holes of a density being recovered). At the points
+// where σ_t < f·σ̄ (a detached decision that depends on x alone), the real collision's score term
+// leaves its light sample out, and every tentative collision there, real or null, instead takes
+// with probability f one light sample of the same estimator (the β before the collision, albedo,
+// phase function, shadow-ray transmittance and MIS weight of a medium vertex) from its own
+// stream, contributing ∂σ_t(x)·sample/(f σ̄): the same expectation, with a variance of order
+// 1/(f σ̄) < 1/σ_t. Elsewhere nothing changes. Only derivative passes (prb's replay and the taped
+// mode) take these samples; images are unchanged. Returns sample/(f σ̄), zero when not taken,
+// occluded or not possible.
+inline Vec3f medium_light_derivative(const Scene& scene, const Medium& med, int medium, const Vec3f& x, const Vec3f& wi,
+                                     float sigma, float majorant, const Vec3f& beta, uint64_t path_key, uint32_t flight,
+                                     uint32_t collision) {
+  if (!med.light_derivative_at(sigma, majorant)) return {};
+  const float q = med.light_derivatives;
+  TrackingSampler rng(path_key, int(flight), 0x20000u + collision);
+  if (!(rng.next() < q)) return {};
+  const int area_count = int(scene.area_emitters.size());
+  const int chosen = std::min(int(rng.next() * float(scene.emitter_count())), scene.emitter_count() - 1);
+  const Vec2f u{rng.next(), rng.next()};
+  const EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, x, u) : scene.environment.sample(u);
+  if (!(es.pdf > 0.f)) return {};
+  const HgParams<float> phase = med.phase<float>(scene.params);
+  const float f = hg_eval(phase, wi, es.wi);
+  const float tmax =
+      std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - x) * (1.f - 1e-3f);
+  const ShadowWalk<float> walk = shadow_transmittance<float>(scene, x, es.wi, tmax, medium, rng, true);
+  if (walk.blocked || walk.transmittance == 0.f) return {};
+  const Vec3f emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<float>(scene.params, es.uv, 1.f)
+                                            : scene.environment.eval<float>(scene.params, es.env);
+  const float light_pdf = es.pdf * scene.emitter_select_probability();
+  const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase, wi, es.wi)) / light_pdf;
+  return beta * med.albedo_at<float>(scene.params, x) * emitted *
+         (f * walk.transmittance * w_over_pdf / (q * majorant));
+}
+
 // Traces one path and returns its radiance estimate. Observer events (float values only):
 //  emission(ref, weight, contribution)      contribution = weight · Le, weight = β · w_mis
 //  nee(vertex, wi, ref, bsdf_adjoint_w, emitter_adjoint_w, contribution)
@@ -362,15 +405,34 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (medium >= 0) {
       observer.tracked(vertex);
       const Medium& med = scene.media[size_t(medium)];
-      TrackingSampler rng(sampler.key(), int(flight++), 0x10000u);
+      const uint32_t flight_index = flight++;
+      TrackingSampler rng(sampler.key(), int(flight_index), 0x10000u);
       const float t_max = hit.mesh < 0 ? std::numeric_limits<float>::infinity() : hit.t;
       const Vec3f radiance_so_far = value_of(radiance);
-      const FreeFlight<T> ff =
-          medium_free_flight<T>(med, params, ray.origin, ray.direction, t_max, rng,
-                                [&](const Vec3f& x, float sigma, float majorant, bool real) {
-                                  if constexpr (Observer::kActive)
-                                    observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
-                                });
+      // Light derivatives (medium_light_derivative): derivative passes only, where a real
+      // collision here would take a light sample.
+      const bool light_derivatives = (Observer::kActive || !std::is_same_v<T, float>)&&has_emitters &&
+                                     !(st.max_depth >= 0 && vertex >= st.max_depth) && observer.light_derivatives(med);
+      uint32_t collisions = 0;
+      bool real_light = false;  // the real collision leaves its light sample out of its score term
+      const FreeFlight<T> ff = medium_free_flight<T>(
+          med, params, ray.origin, ray.direction, t_max, rng,
+          [&](const Vec3f& x, float sigma, float majorant, bool real) {
+            if constexpr (Observer::kActive) observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
+            if constexpr (Observer::kActive || !std::is_same_v<T, float>) {
+              if (!light_derivatives) return;
+              if (real) real_light = med.light_derivative_at(sigma, majorant);
+              const Vec3f c = medium_light_derivative(scene, med, medium, x, -ray.direction, sigma, majorant,
+                                                      value_of(beta), sampler.key(), flight_index, collisions++);
+              if (is_zero(c)) return;
+              if constexpr (Observer::kActive) {
+                observer.flight_light(med, x, c);
+              } else {  // zero in value, ∂σ_t(x)·c in derivative
+                const T d = med.sigma_t<T>(params, x) - sigma;
+                radiance += Spectrum<T>(d * c.x, d * c.y, d * c.z);
+              }
+            }
+          });
       beta = beta * ff.weight;
       if (ff.collided) {
         observer.reached(vertex, kSiteMedium);
@@ -398,7 +460,9 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                                         : scene.environment.eval<T>(params, es.env);
               const float light_pdf = es.pdf * select_pdf;
               const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase_detached, wi_phase, es.wi)) / light_pdf;
-              const Spectrum<T> contribution = beta * albedo * emitted * (f * tr * w_over_pdf);
+              // With light derivatives the real choice's score term leaves this sample out.
+              const Spectrum<T> contribution =
+                  (real_light ? beta : beta * ff.real) * albedo * emitted * (f * tr * w_over_pdf);
               radiance += contribution;
               if constexpr (Observer::kActive) {
                 const EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
@@ -414,7 +478,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         const PhaseSample ps = hg_sample(phase_detached, wi_phase, u);
         if (!(ps.pdf > 0.f)) break;
         // p / pdf is 1 in value; on T it carries the derivative of the phase function.
-        beta = beta * albedo * (hg_eval(phase, wi_phase, ps.wo) / ps.pdf);
+        beta = beta * ff.real * albedo * (hg_eval(phase, wi_phase, ps.wo) / ps.pdf);
         if constexpr (Observer::kActive)
           observer.medium_vertex(med, p, wi_phase, ps.wo, value_of(albedo), radiance_so_far, value_of(radiance));
         float q = 1.f;

@@ -237,6 +237,7 @@ struct Loader {
     // the null-collision terms of the gradient would be lost there (Mitsuba 3's prbvolpath moves
     // by 10% between majorant = max and a larger one in that case).
     m.headroom = float(n.number("majorant_headroom", 1.25, 1.05, 100.0));
+    m.light_derivatives = float(n.number("light_derivatives", 0.0, 0.0, 1.0));
     if (m.grid) {
       if (n.has("bbox")) {
         Node b = n.child("bbox");

@@ -36,6 +36,10 @@ struct Medium {
   int density = -1, albedo = -1, scale = -1, g = -1;  // parameter handles
   Vec3f bbox_min{0.f, 0.f, 0.f}, bbox_max{1.f, 1.f, 1.f};
   float headroom = 1.25f;
+  // Derivative-only light samples at tentative collisions (engine/integrators/path.h,
+  // medium_light_derivative), f: where σ_t < f·σ̄, a fraction f of them takes one; 0 = off.
+  float light_derivatives = 0.f;
+  bool light_derivative_at(float sigma, float majorant) const { return sigma < light_derivatives * majorant; }
   int block = 8;  // voxels per majorant block and axis
 
   // Derived by prepare().
@@ -172,7 +176,7 @@ FreeFlight<T> medium_free_flight(const Medium& m, const ParamStore& params, cons
       if (real) {
         out.collided = true;
         out.t = t;
-        out.weight = out.weight * (sigma / sigma_value);
+        out.real = sigma / sigma_value;
         return false;
       }
       out.weight = out.weight * ((seg.majorant - sigma) / (seg.majorant - sigma_value));

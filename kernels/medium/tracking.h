@@ -12,7 +12,10 @@
 // σ_t/value_of(σ_t) or (σ̄ − σ_t)/(σ̄ − value_of(σ_t)): the value is 1, and the derivative is the
 // score term of the choice (the differential delta tracking of Nimier-David et al. 2022), which
 // makes the gradient unbiased for the derivative of the expectation. For float the factors are
-// exactly 1 and cost nothing.
+// exactly 1 and cost nothing. The null choices' factors multiply FreeFlight::weight; the real
+// choice's factor is returned apart (FreeFlight::real) for the caller to apply, so that the path
+// loop can estimate part of its score term another way (medium_light_derivative in
+// engine/integrators/path.h).
 //
 // Replay: tracking draws a variable number of random numbers. Each call gets its own
 // counter-based stream (TrackingSampler), a pure function of the path's key, the vertex and a
@@ -44,7 +47,8 @@ template <class T>
 struct FreeFlight {
   bool collided = false;  // a real collision at t (else the ray left [t_min, t_max) unscattered)
   float t = 0.f;
-  T weight = T(1.f);  // 1 in value; carries the score terms of the real/null choices
+  T weight = T(1.f);  // 1 in value; carries the score terms of the null choices
+  T real = T(1.f);    // 1 in value; the score term of the real choice (when collided)
   int null_collisions = 0;
 };
 
@@ -65,7 +69,7 @@ FreeFlight<T> delta_tracking(const MajorantGrid& m, const Vec3f& o, const Vec3f&
       if (rng.next() * seg.majorant < sigma_value) {
         out.collided = true;
         out.t = t;
-        out.weight = out.weight * (sigma / sigma_value);
+        out.real = sigma / sigma_value;
         return false;
       }
       out.weight = out.weight * ((seg.majorant - sigma) / (seg.majorant - sigma_value));

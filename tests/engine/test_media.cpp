@@ -40,8 +40,9 @@ struct FogOptions {
   float albedo = -1.f;      // grey albedo override (< 0: coloured (0.8, 0.6, 0.4))
   float g = 0.3f;
   float scale = 1.5f;
-  bool dense_constant = false;  // density 1 everywhere (furnace)
-  bool blob = false;            // a smooth off-centre blob instead of random voxels
+  bool dense_constant = false;    // density 1 everywhere (furnace)
+  bool blob = false;              // a smooth off-centre blob instead of random voxels
+  float light_derivatives = 0.f;  // the medium's light_derivatives (0: off)
 };
 
 // A fog box ([-0.6, 0.6]³, 8³ random density, null boundary) over a floor, in front of a back
@@ -79,7 +80,8 @@ std::string write_fog_scene(const std::string& dir, const FogOptions& o) {
                      std::to_string(o.resolution) + ", " + std::to_string(o.resolution) + R"(]}],
   "media": {"fog": {"type": "grid", "density": {"type": "vol", "file": "density.vol"}, "albedo": )" +
                      albedo + R"(, "scale": )" + std::to_string(o.scale) + R"(, "phase": {"type": "hg", "g": )" +
-                     std::to_string(o.g) + R"(}, "majorant_headroom": )" + std::to_string(o.headroom) + R"(}},
+                     std::to_string(o.g) + R"(}, "majorant_headroom": )" + std::to_string(o.headroom) +
+                     R"(, "light_derivatives": )" + std::to_string(o.light_derivatives) + R"(}},
   "materials": {"wall": {"type": "diffuse", "albedo": [0.6, 0.5, 0.4]},
                 "boundary": {"type": "null"},
                 "lamp": {"type": "diffuse", "albedo": 0.0}},
@@ -260,9 +262,14 @@ TEST_CASE("white furnace: an albedo-1 medium under a uniform sky renders the sky
 }
 
 TEST_CASE("prb equals the taped oracle on the same random numbers, media and surfaces together", "[media]") {
-  for (bool albedo_grid : {false, true}) {
+  // Also with light derivatives (medium_light_derivative, engine/integrators/path.h): both modes
+  // take the same derivative-only light samples and leave them out of the real collisions' terms.
+  std::vector<float> density_without_light;  // variant 0's prb density gradient
+  for (int variant = 0; variant < 3; ++variant) {
+    const bool albedo_grid = variant == 1;
     FogOptions o;
     o.albedo_grid = albedo_grid;
+    o.light_derivatives = variant == 2 ? 0.3f : 0.f;
     o.resolution = 16;
     auto scene = fog_scene(o);
     const Image a = weights(16, 16);
@@ -272,6 +279,9 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
     compute_gradient(*scene, functional_request(a, GradientMethod::Prb, 4, 11));
     std::vector<std::vector<float>> prb;
     for (const auto& n : names) prb.push_back(scene->params[scene->params.find(n)].grad);
+    // The light derivatives are in use: another estimate of the same density gradient.
+    if (variant == 0) density_without_light = prb[0];
+    if (variant == 2) CHECK(prb[0] != density_without_light);
     compute_gradient(*scene, functional_request(a, GradientMethod::Taped, 4, 11));
     for (size_t k = 0; k < names.size(); ++k) {
       const auto& taped = scene->params[scene->params.find(names[k])].grad;
@@ -280,8 +290,8 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
         diff += (double(prb[k][i]) - taped[i]) * (double(prb[k][i]) - taped[i]);
         norm += double(taped[i]) * taped[i];
       }
-      INFO(names[k] << (albedo_grid ? " (albedo grid)" : "") << ": |prb - taped| / |taped| = " << std::sqrt(diff / norm)
-                    << ", |taped| = " << std::sqrt(norm));
+      INFO(names[k] << " (variant " << variant << ")"
+                    << ": |prb - taped| / |taped| = " << std::sqrt(diff / norm) << ", |taped| = " << std::sqrt(norm));
       CHECK(norm > 0);
       CHECK(std::sqrt(diff) <= 1e-4 * std::sqrt(norm));
     }
@@ -298,13 +308,21 @@ TEST_CASE("pruned replays through media give the same gradient", "[media][replay
   tbb::global_control one_thread(tbb::global_control::max_allowed_parallelism, 1);
   FogOptions o;
   o.resolution = 16;
-  auto scene = fog_scene(o);
+  auto fog = fog_scene(o);
   const Image a = weights(16, 16);
   const PixelAdjoint adjoint = [&](size_t pixel, const Vec3f&) {
     return Vec3f(a.data[pixel * 3], a.data[pixel * 3 + 1], a.data[pixel * 3 + 2]);
   };
-  for (const char* name : {"wall.albedo", "light.radiance", "fog.density", "fog.albedo", "fog.g"}) {
+  FogOptions with_light = o;
+  with_light.light_derivatives = 0.3f;
+  auto light_scene = fog_scene(with_light);
+  for (const char* name :
+       {"wall.albedo", "light.radiance", "fog.density", "fog.albedo", "fog.g", "light:fog.density"}) {
     INFO(name);
+    // "light:": the same with light derivatives (derivative-only light samples in the replay).
+    const bool light = std::string(name).rfind("light:", 0) == 0;
+    if (light) name += 6;
+    Scene* scene = light ? light_scene.get() : fog.get();
     scene->params.require_grad({name});
     const Param& p = scene->params[scene->params.find(name)];
     PassOptions po{0, 4, 11, false};
@@ -356,19 +374,29 @@ TEST_CASE("medium gradients match finite differences in expectation", "[media][e
                         {"fog.density", signed_direction, 0.1},
                         {"fog.albedo", {1.f, -0.5f, 0.3f}, 0.05},
                         {"fog.g", {1.f}, 0.05}};
+  // The same σ_t derivatives with light derivatives (medium_light_derivative in
+  // engine/integrators/path.h: derivative-only light samples at tentative collisions, left out
+  // of the real collisions' score terms) must have the same expectation.
+  FogOptions with_light;
+  with_light.light_derivatives = 0.3f;
+  auto light_scene = fog_scene(with_light);
   const int seeds = 96, spp = 8;
   for (const auto& c : cases) {
-    const MeanSe adjoint = stats(adjoint_directional(*scene, a, c.name, c.v, spp, seeds, 1000));
     const MeanSe fd = stats(finite_differences(*fd_scene, a, c.name, c.v, c.h, spp, seeds, 5000));
-    const double z = z_score(adjoint, fd);
-    INFO(c.name << ": adjoint " << adjoint.mean << " +- " << adjoint.se << ", finite differences " << fd.mean << " +- "
-                << fd.se << ", z = " << z);
-    CHECK(std::abs(z) < 4);
-    // Negative control: a gradient 30% too small (Mitsuba 3's prbvolpath once had g's 10x off,
-    // and its density gradient moved by 10% with the majorant) must fail the same test.
-    const double z_wrong = z_score(adjoint, fd, 0.7);
-    INFO("0.7 x adjoint: z = " << z_wrong);
-    CHECK(std::abs(z_wrong) > 4);
+    const bool sigma_t = c.name == "fog.scale" || c.name == "fog.density";
+    for (Scene* s : {scene.get(), sigma_t ? light_scene.get() : nullptr}) {
+      if (!s) continue;
+      const MeanSe adjoint = stats(adjoint_directional(*s, a, c.name, c.v, spp, seeds, 1000));
+      const double z = z_score(adjoint, fd);
+      INFO(c.name << (s == light_scene.get() ? " (light derivatives)" : "") << ": adjoint " << adjoint.mean << " +- "
+                  << adjoint.se << ", finite differences " << fd.mean << " +- " << fd.se << ", z = " << z);
+      CHECK(std::abs(z) < 4);
+      // Negative control: a gradient 30% too small (Mitsuba 3's prbvolpath once had g's 10x off,
+      // and its density gradient moved by 10% with the majorant) must fail the same test.
+      const double z_wrong = z_score(adjoint, fd, 0.7);
+      INFO("0.7 x adjoint: z = " << z_wrong);
+      CHECK(std::abs(z_wrong) > 4);
+    }
   }
 }
 
