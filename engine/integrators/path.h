@@ -411,7 +411,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       const Vec3f radiance_so_far = value_of(radiance);
       // Light derivatives (medium_light_derivative): derivative passes only, where a real
       // collision here would take a light sample.
-      const bool light_derivatives = (Observer::kActive || !std::is_same_v<T, float>)&&has_emitters &&
+      constexpr bool kDerivativePass = Observer::kActive || !std::is_same_v<T, float>;
+      const bool light_derivatives = kDerivativePass && has_emitters &&
                                      !(st.max_depth >= 0 && vertex >= st.max_depth) && observer.light_derivatives(med);
       uint32_t collisions = 0;
       bool real_light = false;  // the real collision leaves its light sample out of its score term
@@ -419,7 +420,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           med, params, ray.origin, ray.direction, t_max, rng,
           [&](const Vec3f& x, float sigma, float majorant, bool real) {
             if constexpr (Observer::kActive) observer.flight_collision(med, x, sigma, majorant, real, radiance_so_far);
-            if constexpr (Observer::kActive || !std::is_same_v<T, float>) {
+            if constexpr (kDerivativePass) {
               if (!light_derivatives) return;
               if (real) real_light = med.light_derivative_at(sigma, majorant);
               const Vec3f c = medium_light_derivative(scene, med, medium, x, -ray.direction, sigma, majorant,
