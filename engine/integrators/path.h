@@ -320,6 +320,27 @@ inline void shadow_transmittance_backprop(const Scene& scene, const std::vector<
       p.medium->backprop_sigma_t(scene.params, p.x, -weight / (p.majorant - p.sigma), grads);
 }
 
+// The light sample of a medium vertex at x (Mitsuba volpath: one emitter chosen uniformly by
+// u_select, a point on it by u, MIS against phase sampling): the emitter sample, the shadow ray's
+// length and the MIS weight over the light pdf. Shared by the path loop and the light derivatives.
+struct MediumLightSample {
+  int chosen = 0;  // index into the area emitters; area count = the environment
+  EmitterSample es;
+  float tmax = 0.f, w_over_pdf = 0.f;
+};
+inline MediumLightSample medium_light_sample(const Scene& scene, const Vec3f& x, const Vec3f& wi,
+                                             const HgParams<float>& phase, float u_select, const Vec2f& u) {
+  MediumLightSample s;
+  const int area_count = int(scene.area_emitters.size());
+  s.chosen = std::min(int(u_select * float(scene.emitter_count())), scene.emitter_count() - 1);
+  s.es = s.chosen < area_count ? scene.sample_area_emitter(s.chosen, x, u) : scene.environment.sample(u);
+  if (!(s.es.pdf > 0.f)) return s;
+  s.tmax = std::isinf(s.es.distance) ? std::numeric_limits<float>::infinity() : length(s.es.point - x) * (1.f - 1e-3f);
+  const float light_pdf = s.es.pdf * scene.emitter_select_probability();
+  s.w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase, wi, s.es.wi)) / light_pdf;
+  return s;
+}
+
 // Density derivatives from light samples at tentative collisions (Medium::light_derivatives = f >
 // 0). A real collision of delta tracking at x (probability σ_t/σ̄) gives ∂σ_t(x) the score term
 // ⟨δ, rest⟩/σ_t; rest includes the vertex's own light sample, whose share of that term has the
@@ -340,23 +361,18 @@ inline Vec3f medium_light_derivative(const Scene& scene, const Medium& med, int 
   const float q = med.light_derivatives;
   TrackingSampler rng(path_key, int(flight), 0x20000u + collision);
   if (!(rng.next() < q)) return {};
-  const int area_count = int(scene.area_emitters.size());
-  const int chosen = std::min(int(rng.next() * float(scene.emitter_count())), scene.emitter_count() - 1);
-  const Vec2f u{rng.next(), rng.next()};
-  const EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, x, u) : scene.environment.sample(u);
-  if (!(es.pdf > 0.f)) return {};
   const HgParams<float> phase = med.phase<float>(scene.params);
-  const float f = hg_eval(phase, wi, es.wi);
-  const float tmax =
-      std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - x) * (1.f - 1e-3f);
-  const ShadowWalk<float> walk = shadow_transmittance<float>(scene, x, es.wi, tmax, medium, rng, true);
+  const float u_select = rng.next();
+  const Vec2f u{rng.next(), rng.next()};
+  const MediumLightSample ls = medium_light_sample(scene, x, wi, phase, u_select, u);
+  if (!(ls.es.pdf > 0.f)) return {};
+  const ShadowWalk<float> walk = shadow_transmittance<float>(scene, x, ls.es.wi, ls.tmax, medium, rng, true);
   if (walk.blocked || walk.transmittance == 0.f) return {};
-  const Vec3f emitted = chosen < area_count ? scene.area_emitters[size_t(chosen)].eval<float>(scene.params, es.uv, 1.f)
-                                            : scene.environment.eval<float>(scene.params, es.env);
-  const float light_pdf = es.pdf * scene.emitter_select_probability();
-  const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase, wi, es.wi)) / light_pdf;
+  const Vec3f emitted = ls.chosen < int(scene.area_emitters.size())
+                            ? scene.area_emitters[size_t(ls.chosen)].eval<float>(scene.params, ls.es.uv, 1.f)
+                            : scene.environment.eval<float>(scene.params, ls.es.env);
   return beta * med.albedo_at<float>(scene.params, x) * emitted *
-         (f * walk.transmittance * w_over_pdf / (q * majorant));
+         (hg_eval(phase, wi, ls.es.wi) * walk.transmittance * ls.w_over_pdf / (q * majorant));
 }
 
 // Traces one path and returns its radiance estimate. Observer events (float values only):
@@ -445,30 +461,25 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         const HgParams<float> phase_detached{value_of(phase.g)};
 
         if (has_emitters && observer.nee_may_contribute(vertex)) {
-          int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
-                                scene.emitter_count() - 1);
-          Vec2f u{sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))};
-          EmitterSample es =
-              chosen < area_count ? scene.sample_area_emitter(chosen, p, u) : scene.environment.sample(u);
+          const MediumLightSample ls = medium_light_sample(
+              scene, p, wi_phase, phase_detached, sampler.get(Dim::at(vertex, Dim::kLightSelect)),
+              {sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))});
+          const EmitterSample& es = ls.es;
           if (es.pdf > 0.f) {
             const T f = hg_eval(phase, wi_phase, es.wi);
-            const float tmax =
-                std::isinf(es.distance) ? std::numeric_limits<float>::infinity() : length(es.point - p) * (1.f - 1e-3f);
             T tr = T(1.f);
-            if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, p, es.wi, tmax, medium, tr)) {
-              Spectrum<T> emitted = chosen < area_count
-                                        ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
+            if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, p, es.wi, ls.tmax, medium, tr)) {
+              Spectrum<T> emitted = ls.chosen < area_count
+                                        ? scene.area_emitters[size_t(ls.chosen)].eval<T>(params, es.uv, 1.f)
                                         : scene.environment.eval<T>(params, es.env);
-              const float light_pdf = es.pdf * select_pdf;
-              const float w_over_pdf = power_heuristic(light_pdf, hg_pdf(phase_detached, wi_phase, es.wi)) / light_pdf;
               // With light derivatives the real choice's score term leaves this sample out.
               const Spectrum<T> contribution =
-                  (real_light ? beta : beta * ff.real) * albedo * emitted * (f * tr * w_over_pdf);
+                  (real_light ? beta : beta * ff.real) * albedo * emitted * (f * tr * ls.w_over_pdf);
               radiance += contribution;
               if constexpr (Observer::kActive) {
-                const EmissionRef eref{chosen < area_count ? chosen : -1, es.uv, es.wi};
+                const EmissionRef eref{ls.chosen < area_count ? ls.chosen : -1, es.uv, es.wi};
                 const Vec3f emitter_weight =
-                    value_of(beta) * value_of(albedo) * (value_of(f) * value_of(tr) * w_over_pdf);
+                    value_of(beta) * value_of(albedo) * (value_of(f) * value_of(tr) * ls.w_over_pdf);
                 observer.medium_nee(med, p, wi_phase, es.wi, value_of(f), eref, emitter_weight, value_of(contribution));
               }
             }
