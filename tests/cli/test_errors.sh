@@ -229,6 +229,10 @@ expect_error medium_unknown_key "/media/smoke" "unknown key 'sigma'" -- \
   render "$(vv badkey 's["media"]["smoke"]["sigma"] = 1')" -o o.exr -q
 expect_error medium_headroom "majorant_headroom" -- \
   render "$(vv headroom 's["media"]["smoke"]["majorant_headroom"] = 1.0')" -o o.exr -q
+expect_error medium_light_derivatives "light_derivatives" -- \
+  render "$(vv lightder 's["media"]["smoke"]["light_derivatives"] = 1.5')" -o o.exr -q
+expect_error medium_light_derivatives_type "light_derivatives" "expected a number" -- \
+  render "$(vv lightdertype 's["media"]["smoke"]["light_derivatives"] = "yes"')" -o o.exr -q
 python3 - <<'PY'
 import struct
 head = open("vol/density.vol", "rb").read(48)
