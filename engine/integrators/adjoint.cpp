@@ -105,7 +105,9 @@ struct ReplayObserver {
                                             grads);
     pending_real.medium = nullptr;
   }
-  bool light_derivatives(const Medium& m) const { return m.light_derivatives > 0.f && m.wants_sigma_grad(grads); }
+  bool light_derivatives(const Medium& m, const ParamStore&) const {
+    return m.light_derivatives > 0.f && m.wants_sigma_grad(grads);
+  }
   void flight_light(const Medium& m, const Vec3f& x, const Vec3f& weighted) {
     const float w = dot(delta, weighted);
     if (w != 0.f) m.backprop_sigma_t(scene.params, x, w, grads);
@@ -114,7 +116,7 @@ struct ReplayObserver {
                         const Vec3f& radiance_so_far) {
     if (!m.wants_sigma_grad(grads)) return;
     const float rest = dot(delta, total_radiance - radiance_so_far);
-    if (real && light_derivatives(m) && m.light_derivative_at(sigma, majorant)) {
+    if (real && light_derivatives(m, scene.params) && m.light_derivative_at(sigma, majorant)) {
       pending_real = {&m, x, sigma, rest};
       return;
     }
@@ -191,7 +193,7 @@ struct RadiativeObserver {
   // the wrong medium.
   void flight_collision(const Medium&, const Vec3f&, float, float, bool, const Vec3f&) {}
   void flight_light(const Medium&, const Vec3f&, const Vec3f&) {}
-  bool light_derivatives(const Medium&) const { return false; }
+  bool light_derivatives(const Medium&, const ParamStore&) const { return false; }
   void medium_vertex(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&, const Vec3f&,
                      const Vec3f&) {}
   void medium_nee(const Medium&, const Vec3f&, const Vec3f&, const Vec3f&, float, const EmissionRef&, const Vec3f&,

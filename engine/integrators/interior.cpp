@@ -45,7 +45,7 @@ struct PathVertex {
 // Records a path's vertices while the path loop computes its radiance.
 struct VertexRecorder : NoObserver {
   static constexpr bool kActive = true;
-  bool light_derivatives(const Medium&) const { return false; }  // no medium derivatives here
+  bool light_derivatives(const Medium&, const ParamStore&) const { return false; }  // no medium derivatives here
   const Scene* scene = nullptr;
   std::vector<PathVertex>* path = nullptr;
   int current = 0;

@@ -66,9 +66,12 @@ struct NoObserver {
                   const Vec3f&) {}
   void shadow(const Vec3f&) {}
   // A derivative-only light sample at a tentative collision (medium_light_derivative): ∂σ_t(x)
-  // gets ⟨δ, weighted⟩. Whether the loop should take them for medium m at all:
+  // gets ⟨δ, weighted⟩. Whether the loop should take them for medium m at all (the taped mode:
+  // when σ_t reads a parameter that wants a gradient; otherwise their terms are zero):
   void flight_light(const Medium&, const Vec3f&, const Vec3f&) {}
-  bool light_derivatives(const Medium& m) const { return m.light_derivatives > 0.f; }
+  bool light_derivatives(const Medium& m, const ParamStore& params) const {
+    return m.light_derivatives > 0.f && m.wants_sigma_grad(params);
+  }
   void emission(const EmissionRef&, const Vec3f&, const Vec3f&) {}
   void nee(const VertexRef&, const Vec3f&, const EmissionRef&, const Vec3f&, const Vec3f&, const Vec3f&) {}
   void scatter(const VertexRef&, const Vec3f&, const Vec3f&, float, float, const Vec3f&, const Vec3f&, int,
@@ -429,7 +432,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       // collision here would take a light sample.
       constexpr bool kDerivativePass = Observer::kActive || !std::is_same_v<T, float>;
       const bool light_derivatives = kDerivativePass && has_emitters &&
-                                     !(st.max_depth >= 0 && vertex >= st.max_depth) && observer.light_derivatives(med);
+                                     !(st.max_depth >= 0 && vertex >= st.max_depth) &&
+                                     observer.light_derivatives(med, params);
       uint32_t collisions = 0;
       bool real_light = false;  // the real collision leaves its light sample out of its score term
       const FreeFlight<T> ff = medium_free_flight<T>(

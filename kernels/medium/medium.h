@@ -113,6 +113,9 @@ struct Medium {
 
   // Derivative shaders: adjoint · ∂(quantity at x)/∂θ into every parameter the value read.
   bool wants_sigma_grad(const GradientAccumulator& grads) const { return grads.wants(density) || grads.wants(scale); }
+  bool wants_sigma_grad(const ParamStore& params) const {
+    return (density >= 0 && params[density].requires_grad) || (scale >= 0 && params[scale].requires_grad);
+  }
   void backprop_sigma_t(const ParamStore& params, const Vec3f& world, float adjoint, GradientAccumulator& grads) const {
     const Param& dp = params[density];
     if (grid) {
