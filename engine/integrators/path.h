@@ -330,6 +330,12 @@ struct MediumLightSample {
   int chosen = 0;  // index into the area emitters; area count = the environment
   EmitterSample es;
   float tmax = 0.f, w_over_pdf = 0.f;
+  // The chosen emitter's radiance towards x.
+  template <class T>
+  Spectrum<T> emitted(const Scene& scene, const ParamStore& params) const {
+    return chosen < int(scene.area_emitters.size()) ? scene.area_emitters[size_t(chosen)].eval<T>(params, es.uv, 1.f)
+                                                    : scene.environment.eval<T>(params, es.env);
+  }
 };
 inline MediumLightSample medium_light_sample(const Scene& scene, const Vec3f& x, const Vec3f& wi,
                                              const HgParams<float>& phase, float u_select, const Vec2f& u) {
@@ -371,10 +377,7 @@ inline Vec3f medium_light_derivative(const Scene& scene, const Medium& med, int 
   if (!(ls.es.pdf > 0.f)) return {};
   const ShadowWalk<float> walk = shadow_transmittance<float>(scene, x, ls.es.wi, ls.tmax, medium, rng, true);
   if (walk.blocked || walk.transmittance == 0.f) return {};
-  const Vec3f emitted = ls.chosen < int(scene.area_emitters.size())
-                            ? scene.area_emitters[size_t(ls.chosen)].eval<float>(scene.params, ls.es.uv, 1.f)
-                            : scene.environment.eval<float>(scene.params, ls.es.env);
-  return beta * med.albedo_at<float>(scene.params, x) * emitted *
+  return beta * med.albedo_at<float>(scene.params, x) * ls.emitted<float>(scene, scene.params) *
          (hg_eval(phase, wi, ls.es.wi) * walk.transmittance * ls.w_over_pdf / (q * majorant));
 }
 
@@ -473,9 +476,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             const T f = hg_eval(phase, wi_phase, es.wi);
             T tr = T(1.f);
             if (trace_shadow_ray<T>(scene, observer, sampler.key(), vertex, p, es.wi, ls.tmax, medium, tr)) {
-              Spectrum<T> emitted = ls.chosen < area_count
-                                        ? scene.area_emitters[size_t(ls.chosen)].eval<T>(params, es.uv, 1.f)
-                                        : scene.environment.eval<T>(params, es.env);
+              const Spectrum<T> emitted = ls.emitted<T>(scene, params);
               // With light derivatives the real choice's score term leaves this sample out.
               const Spectrum<T> contribution =
                   (real_light ? beta : beta * ff.real) * albedo * emitted * (f * tr * ls.w_over_pdf);
