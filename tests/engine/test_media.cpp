@@ -43,6 +43,7 @@ struct FogOptions {
   bool dense_constant = false;    // density 1 everywhere (furnace)
   bool blob = false;              // a smooth off-centre blob instead of random voxels
   float light_derivatives = 0.f;  // the medium's light_derivatives (0: off)
+  float homogeneous = 0.f;        // > 0: a homogeneous medium of this density instead of the grid
 };
 
 // A fog box ([-0.6, 0.6]³, 8³ random density, null boundary) over a floor, in front of a back
@@ -73,15 +74,18 @@ std::string write_fog_scene(const std::string& dir, const FogOptions& o) {
   const std::string albedo = o.albedo_grid     ? R"({"type": "vol", "file": "albedo.vol"})"
                              : o.albedo >= 0.f ? std::to_string(o.albedo)
                                                : "[0.8, 0.6, 0.4]";
-  std::string json = R"({
+  std::string json =
+      R"({
   "integrator": {"spp": 4, "max_depth": )" +
-                     std::to_string(o.max_depth) + R"(, "rr_depth": )" + std::to_string(o.rr_depth) + R"(},
+      std::to_string(o.max_depth) + R"(, "rr_depth": )" + std::to_string(o.rr_depth) + R"(},
   "cameras": [{"origin": [0, 0.3, 3.5], "target": [0, 0, 0], "fov": 40, "resolution": [)" +
-                     std::to_string(o.resolution) + ", " + std::to_string(o.resolution) + R"(]}],
-  "media": {"fog": {"type": "grid", "density": {"type": "vol", "file": "density.vol"}, "albedo": )" +
-                     albedo + R"(, "scale": )" + std::to_string(o.scale) + R"(, "phase": {"type": "hg", "g": )" +
-                     std::to_string(o.g) + R"(}, "majorant_headroom": )" + std::to_string(o.headroom) +
-                     R"(, "light_derivatives": )" + std::to_string(o.light_derivatives) + R"(}},
+      std::to_string(o.resolution) + ", " + std::to_string(o.resolution) + R"(]}],
+  "media": {"fog": {"type": )" +
+      (o.homogeneous > 0.f ? R"("homogeneous", "density": )" + std::to_string(o.homogeneous)
+                           : std::string(R"("grid", "density": {"type": "vol", "file": "density.vol"})")) +
+      R"(, "albedo": )" + albedo + R"(, "scale": )" + std::to_string(o.scale) + R"(, "phase": {"type": "hg", "g": )" +
+      std::to_string(o.g) + R"(}, "majorant_headroom": )" + std::to_string(o.headroom) + R"(, "light_derivatives": )" +
+      std::to_string(o.light_derivatives) + R"(}},
   "materials": {"wall": {"type": "diffuse", "albedo": [0.6, 0.5, 0.4]},
                 "boundary": {"type": "null"},
                 "lamp": {"type": "diffuse", "albedo": 0.0}},
@@ -264,12 +268,15 @@ TEST_CASE("white furnace: an albedo-1 medium under a uniform sky renders the sky
 TEST_CASE("prb equals the taped oracle on the same random numbers, media and surfaces together", "[media]") {
   // Also with light derivatives (medium_light_derivative, engine/integrators/path.h): both modes
   // take the same derivative-only light samples and leave them out of the real collisions' terms.
-  std::vector<float> density_without_light;  // variant 0's prb density gradient
-  for (int variant = 0; variant < 3; ++variant) {
-    const bool albedo_grid = variant == 1;
+  // Variants: 0 grid density, 1 with an albedo grid, 2 with light derivatives (f = 0.3), 3 a
+  // homogeneous medium, 4 the same with light derivatives (f = 0.9: σ_t is σ̄ / 1.25 everywhere,
+  // so only f > 0.8 takes them).
+  std::vector<float> density_without_light;  // variant 0's (3's) prb density gradient
+  for (int variant = 0; variant < 5; ++variant) {
     FogOptions o;
-    o.albedo_grid = albedo_grid;
-    o.light_derivatives = variant == 2 ? 0.3f : 0.f;
+    o.albedo_grid = variant == 1;
+    o.light_derivatives = variant == 2 ? 0.3f : variant == 4 ? 0.9f : 0.f;
+    o.homogeneous = variant >= 3 ? 0.8f : 0.f;
     o.resolution = 16;
     auto scene = fog_scene(o);
     const Image a = weights(16, 16);
@@ -280,8 +287,8 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
     std::vector<std::vector<float>> prb;
     for (const auto& n : names) prb.push_back(scene->params[scene->params.find(n)].grad);
     // The light derivatives are in use: another estimate of the same density gradient.
-    if (variant == 0) density_without_light = prb[0];
-    if (variant == 2) CHECK(prb[0] != density_without_light);
+    if (variant == 0 || variant == 3) density_without_light = prb[0];
+    if (variant == 2 || variant == 4) CHECK(prb[0] != density_without_light);
     compute_gradient(*scene, functional_request(a, GradientMethod::Taped, 4, 11));
     for (size_t k = 0; k < names.size(); ++k) {
       const auto& taped = scene->params[scene->params.find(names[k])].grad;
@@ -405,8 +412,10 @@ TEST_CASE("medium gradients match finite differences in expectation", "[media][e
 // derivative-only light sample may stand in for one (the max-depth condition of trace_path's
 // light derivatives; taking them anyway moves the scale and density derivatives by 27% and 33%);
 // (2) two emitters (the area light and a constant sky, each light sample choosing one) with
-// Russian roulette from the first vertex.
-TEST_CASE("light derivatives stay unbiased at max depth, with two emitters and roulette", "[media][expectation]") {
+// Russian roulette from the first vertex; (3) a homogeneous medium (σ_t = σ̄ / 1.25 everywhere:
+// with f = 0.9 every tentative collision takes the derivative-only light sample).
+TEST_CASE("light derivatives stay unbiased at max depth, with two emitters and roulette, in homogeneous media",
+          "[media][expectation]") {
   FogOptions shallow;
   shallow.max_depth = 2;
   FogOptions two_emitters;
@@ -418,16 +427,22 @@ TEST_CASE("light derivatives stay unbiased at max depth, with two emitters and r
   std::normal_distribution<float> normal;
   std::vector<float> density_direction(512);
   for (float& v : density_direction) v = std::abs(normal(rng));
+  FogOptions homogeneous;
+  homogeneous.homogeneous = 0.8f;
+  homogeneous.light_derivatives = 0.9f;
   const int seeds = 96, spp = 8;
-  for (FogOptions o : {shallow, two_emitters}) {
-    o.light_derivatives = 0.3f;
+  for (FogOptions o : {shallow, two_emitters, homogeneous}) {
+    if (o.light_derivatives == 0.f) o.light_derivatives = 0.3f;
     auto scene = fog_scene(o);
     FogOptions loose = o;
     loose.headroom = 3.f;
     auto fd_scene = fog_scene(loose);
-    const std::string setting = o.environment > 0.f ? "two emitters, roulette from vertex 1" : "max depth 2";
+    const std::string setting = o.homogeneous > 0.f   ? "homogeneous, f = 0.9"
+                                : o.environment > 0.f ? "two emitters, roulette from vertex 1"
+                                                      : "max depth 2";
+    const std::vector<float> density_v = o.homogeneous > 0.f ? std::vector<float>{1.f} : density_direction;
     for (const auto& [name, v] :
-         {std::pair<std::string, std::vector<float>>{"fog.scale", {1.f}}, {"fog.density", density_direction}}) {
+         {std::pair<std::string, std::vector<float>>{"fog.scale", {1.f}}, {"fog.density", density_v}}) {
       const MeanSe fd = stats(finite_differences(*fd_scene, a, name, v, 0.1, spp, seeds, 7000));
       const MeanSe adjoint = stats(adjoint_directional(*scene, a, name, v, spp, seeds, 3000));
       const double z = z_score(adjoint, fd), z_wrong = z_score(adjoint, fd, 0.7);
