@@ -4,7 +4,9 @@
 // (tessellated), to_world (matrix, lookat, translate, rotate, scale in document order), bsdfs
 // diffuse, roughconductor (eta/k → Schlick), conductor, roughplastic, plastic, twosided, null,
 // textures bitmap, emitters area, constant and envmap (identity to_world), sensor perspective with film hdrfilm and a
-// sampler, integrators path/prb/volpath/prbvolpath. Anything else is an error naming the plugin and its line;
+// sampler, integrators path/prb/volpath/prbvolpath, media homogeneous and heterogeneous (grey σ_t, a
+// gridvolume .vol with a scale-and-translate to_world, constvolume values, phase isotropic or hg)
+// as shape interiors/exteriors and sensor media. Anything else is an error naming the plugin and its line;
 // attributes that do not change the image (file formats, far_clip, …) give one warning.
 #include <pugixml.hpp>
 
@@ -81,7 +83,10 @@ class XmlScene {
         material_name(n);  // declared with an id: added when used, or now
       else if (t == "texture")
         continue;  // used through <ref>
-      else if (t == "emitter")
+      else if (t == "medium" || t == "volume" || t == "phase") {
+        if (!n.attribute("id")) fail(n, "a top-level <" + t + "> needs an id (it is used through <ref>)");
+        continue;  // used through <ref>
+      } else if (t == "emitter")
         environment(n);
       else
         fail(n, "unsupported <" + t + "> at the top level");
@@ -97,6 +102,7 @@ class XmlScene {
   std::map<std::string, std::string> defaults_;
   std::map<std::string, pugi::xml_node> ids_;
   std::map<std::string, std::string> material_of_id_;
+  std::map<std::string, std::string> medium_of_id_;
   std::set<std::string> warned_;
   json root_;
   int anonymous_ = 0;
@@ -516,6 +522,10 @@ class XmlScene {
         finish(c, f, {"pixel_format", "component_format", "file_format", "banner", "sample_border", "rgb_gamma"});
         if (f.objects.empty())
           warn(c, "rfilter", "no rfilter: Mitsuba's default (gaussian) is rendered as a box filter");
+      } else if (tag(c) == "medium") {
+        if (std::string(o2.attribute("name").value()) != "medium") fail(o2, "a sensor's medium is named medium");
+        if (cam.contains("medium")) fail(o2, "a second sensor medium");
+        cam["medium"] = medium_name(c);
       } else if (tag(c) == "sampler") {
         Props s = props(c);
         const std::string st = plugin_type(c);
@@ -588,7 +598,10 @@ class XmlScene {
         finish(c, e);
         s["emitter"] = {{"radiance", radiance}};
       } else if (t == "medium") {
-        fail(c, "participating media in XML scenes are not supported yet (use a JSON scene)");
+        const std::string side = o.attribute("name").value();
+        if (side != "interior" && side != "exterior") fail(o, "a shape's medium is named interior or exterior");
+        if (s.contains(side)) fail(o, "a second " + side + " medium");
+        s[side] = medium_name(c);
       } else {
         fail(c, "unexpected element in a shape");
       }
@@ -602,6 +615,155 @@ class XmlScene {
     s["material"] = material;
     finish(n, p);
     root_["shapes"].push_back(s);
+  }
+
+  // A <medium> (with an id: translated once) → the name of its JSON medium.
+  std::string medium_name(const pugi::xml_node& n) {
+    const std::string id = n.attribute("id").value();
+    if (!id.empty())
+      if (auto it = medium_of_id_.find(id); it != medium_of_id_.end()) return it->second;
+    if (!root_.contains("media")) root_["media"] = json::object();
+    // JSON medium names may not contain '.' (parameter names are <medium>.density, …).
+    std::string name = id.empty() ? fresh("medium") : clean(id);
+    for (char& c : name)
+      if (c == '.') c = '_';
+    while (root_["media"].contains(name)) name = fresh(name);
+    root_["media"][name] = medium(n);
+    if (!id.empty()) medium_of_id_[id] = name;
+    return name;
+  }
+
+  // A constant medium coefficient: <float>, <rgb>/<spectrum> or a constvolume's value, as a number
+  // (grey) or [r, g, b].
+  json constant(const pugi::xml_node& n) {
+    const json c = color(n);
+    if (c.is_array() && c[0] == c[1] && c[1] == c[2]) return c[0];
+    return c;
+  }
+
+  // A <volume>: its constant value, or (gridvolume) {"type": "vol", "file": F} with the world box
+  // its to_world gives the unit cube (`box`: {min, max}, or null for the box stored in the file).
+  struct VolumeValue {
+    json value;  // a number, [r, g, b] or a grid object
+    bool grid = false;
+    json box;
+  };
+  VolumeValue volume(const pugi::xml_node& n) {
+    const std::string type = plugin_type(n);
+    Props p = props(n);
+    for (const pugi::xml_node& o : p.objects) fail(o, "unexpected element in a volume");
+    VolumeValue v;
+    if (type == "constvolume") {
+      v.value = has(p, "value") ? constant(get(p, "value")) : json(1.0);
+      finish(n, p);
+      return v;
+    }
+    if (type != "gridvolume") fail(n, "unsupported volume type (gridvolume or constvolume)");
+    if (!has(p, "filename")) fail(n, "gridvolume needs a filename");
+    v.grid = true;
+    v.value = {{"type", "vol"}, {"file", get_string(p, "filename", "")}};
+    const std::string filter = get_string(p, "filter_type", "trilinear");
+    if (filter != "trilinear") fail(n, "filter_type '" + filter + "' is not supported (trilinear only)");
+    const std::string wrap = get_string(p, "wrap_mode", "clamp");
+    if (wrap != "clamp") fail(n, "wrap_mode '" + wrap + "' is not supported (clamp only)");
+    const bool grid_box = get_bool(p, "use_grid_bbox", false);
+    Transform t;
+    if (has(p, "to_world")) {
+      const pugi::xml_node tn = get(p, "to_world");
+      t = transform(tn);
+      for (int i = 0; i < 4; ++i)
+        for (int j = 0; j < 4; ++j)
+          if (i != j && j != 3 && t.m[i][j] != 0.f)
+            fail(tn, "a gridvolume's to_world must be a scale and a translation (no rotation or shear)");
+      if (t.m[3][3] != 1.f || !(t.m[0][0] > 0.f && t.m[1][1] > 0.f && t.m[2][2] > 0.f))
+        fail(tn, "a gridvolume's to_world must scale by positive factors");
+      if (grid_box) fail(tn, "use_grid_bbox together with a to_world is not supported");
+    }
+    if (grid_box) {
+      v.box = nullptr;  // the box stored in the .vol file
+    } else {
+      // Mitsuba ignores the box stored in the file: the unit cube, through to_world.
+      const Vec3f lo = t.point({0, 0, 0}), hi = t.point({1, 1, 1});
+      v.box = {{"min", {lo.x, lo.y, lo.z}}, {"max", {hi.x, hi.y, hi.z}}};
+    }
+    // `raw` only changes spectral variants' RGB upsampling; `accel` and `max_value` only the
+    // majorant (a sampling choice here: block maxima).
+    finish(n, p, {"raw", "accel", "max_value"});
+    return v;
+  }
+
+  json phase(const pugi::xml_node& n) {
+    const std::string type = plugin_type(n);
+    Props p = props(n);
+    for (const pugi::xml_node& o : p.objects) fail(o, "unexpected element in a phase function");
+    json ph;
+    if (type == "isotropic") {
+      ph = {{"type", "isotropic"}};
+    } else if (type == "hg") {
+      ph = {{"type", "hg"}, {"g", get_number(p, "g", 0.8)}};
+    } else {
+      fail(n, "unsupported phase function (isotropic or hg)");
+    }
+    finish(n, p);
+    return ph;
+  }
+
+  // Mitsuba's homogeneous and heterogeneous media: σ_t = scale · sigma_t (grey: backlight's
+  // extinction is the same in R, G and B), albedo (default 0.75), phase (default isotropic).
+  json medium(const pugi::xml_node& n) {
+    const std::string type = plugin_type(n);
+    if (type != "homogeneous" && type != "heterogeneous")
+      fail(n, "unsupported medium type (homogeneous or heterogeneous)");
+    Props p = props(n);
+    VolumeValue sigma{json(1.0)}, albedo{json(0.75)};
+    pugi::xml_node sigma_at = n, albedo_at = n;
+    bool sigma_given = false, albedo_given = false;
+    json ph = {{"type", "isotropic"}};
+    bool phase_given = false;
+    auto take = [&](const std::string& name, const pugi::xml_node& at, VolumeValue v) {
+      if (name == "sigma_t") {
+        if (sigma_given) fail(at, "sigma_t given twice");
+        sigma = std::move(v), sigma_at = at, sigma_given = true;
+      } else if (name == "albedo") {
+        if (albedo_given) fail(at, "albedo given twice");
+        albedo = std::move(v), albedo_at = at, albedo_given = true;
+      } else {
+        fail(at, "unexpected volume '" + name + "' in a medium (sigma_t or albedo)");
+      }
+    };
+    for (const char* name : {"sigma_t", "albedo"})
+      if (has(p, name)) take(name, get(p, name), {constant(get(p, name))});
+    for (const pugi::xml_node& o : p.objects) {
+      const pugi::xml_node c = resolve(o);
+      if (tag(c) == "phase") {
+        if (phase_given) fail(o, "a second phase function");
+        ph = phase(c), phase_given = true;
+      } else if (tag(c) == "volume") {
+        take(o.attribute("name").value(), o, volume(c));
+      } else {
+        fail(o, "unexpected element in a medium");
+      }
+    }
+    if (sigma.value.is_array()) fail(sigma_at, "sigma_t must be the same in R, G and B (grey extinction)");
+    if (has(p, "sample_emitters") && !get_bool(p, "sample_emitters", true))
+      fail(get(p, "sample_emitters"), "sample_emitters false is not supported (light is always sampled)");
+    json m;
+    if (sigma.grid) {
+      if (type == "homogeneous") fail(sigma_at, "a homogeneous medium takes a constant sigma_t");
+      m = {{"type", "grid"}, {"density", sigma.value}};
+      if (!sigma.box.is_null()) m["bbox"] = sigma.box;
+      if (albedo.grid && albedo.box != sigma.box)
+        fail(albedo_at, "the albedo grid must fill the same box as the sigma_t grid");
+    } else {
+      // A constant sigma_t fills the shapes that name the medium: backlight's homogeneous medium.
+      if (albedo.grid) fail(albedo_at, "an albedo grid needs a sigma_t grid");
+      m = {{"type", "homogeneous"}, {"density", sigma.value}};
+    }
+    m["albedo"] = albedo.value;
+    m["scale"] = get_number(p, "scale", 1.0);
+    m["phase"] = ph;
+    finish(n, p, {"has_spectral_extinction"});
+    return m;
   }
 
   void environment(const pugi::xml_node& n) {
