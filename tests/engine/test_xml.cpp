@@ -12,6 +12,7 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include "engine/core/errors.h"
 #include "engine/integrators/render.h"
@@ -92,6 +93,52 @@ std::string rgb(const json& v) {
   return b;
 }
 
+// A JSON scene's mesh as a Mitsuba <shape>: the mesh written to DIR as an OBJ or a big-endian PLY
+// file, its material a <ref>, its interior medium a <ref name="interior">, its area emitter nested.
+std::string shape_xml(const std::string& dir, const json& shape, bool obj) {
+  const std::string file = shape["name"].get<std::string>() + (obj ? ".obj" : ".ply");
+  if (obj)
+    write_obj(dir + "/" + file, shape);
+  else
+    write_ply(dir + "/" + file, shape);
+  std::ostringstream x;
+  x << "  <shape type=\"" << (obj ? "obj" : "ply") << "\" id=\"" << shape["name"].get<std::string>() << "\">\n"
+    << "    <string name=\"filename\" value=\"" << file << "\"/>\n"
+    << (obj ? "    <boolean name=\"flip_tex_coords\" value=\"false\"/>\n" : "") << "    <ref id=\""
+    << shape["material"].get<std::string>() << "\"/>\n";
+  if (shape.contains("interior"))
+    x << "    <ref name=\"interior\" id=\"" << shape["interior"].get<std::string>() << "\"/>\n";
+  if (shape.contains("emitter"))
+    x << "    <emitter type=\"area\"><rgb name=\"radiance\" value=\"" << rgb(shape["emitter"]["radiance"])
+      << "\"/></emitter>\n";
+  x << "  </shape>\n";
+  return x.str();
+}
+
+// An XML scene and its JSON counterpart render alike: Σ |a − b| / Σ b < 1e-4 (an all-black
+// reference fails), at `side`² pixels (0: the scenes' own size), `spp`, the same seed. The camera
+// frame goes through lookat → matrix → origin/target/up, which may round its last bits
+// differently: hence 1e-4 of the mean brightness rather than bit for bit. Returns the image.
+Image check_renders_alike(Scene& xml, Scene& ref, int side, int spp, uint64_t seed) {
+  for (Scene* s : {&xml, &ref})
+    if (side > 0) {
+      s->cameras[0].width = s->cameras[0].height = side;
+      s->cameras[0].update();
+    }
+  const Image a = render(xml, {0, spp, seed, false}), b = render(ref, {0, spp, seed, false});
+  double diff = 0, sum = 0;
+  size_t differing = 0;
+  for (size_t i = 0; i < a.data.size(); ++i) {
+    diff += std::abs(double(a.data[i]) - b.data[i]);
+    sum += b.data[i];
+    differing += a.data[i] != b.data[i];
+  }
+  const double rel = sum > 0 ? diff / sum : 1.0;
+  INFO("pixel values that differ: " << differing << " of " << a.data.size() << ", mean |diff| / mean " << rel);
+  CHECK(rel < 1e-4);
+  return a;
+}
+
 // scenes/mitsuba-cornell as a Mitsuba XML file: shapes alternate between OBJ and PLY files.
 std::string write_cornell_xml(const std::string& dir) {
   std::ifstream in(cornell_json());
@@ -113,22 +160,7 @@ std::string write_cornell_xml(const std::string& dir) {
     x << "  <bsdf type=\"diffuse\" id=\"" << it.key() << "\">\n    <rgb name=\"reflectance\" value=\""
       << rgb(it.value()["albedo"]) << "\"/>\n  </bsdf>\n";
   int k = 0;
-  for (const auto& shape : s["shapes"]) {
-    const bool obj = k++ % 2 == 0;
-    const std::string file = shape["name"].get<std::string>() + (obj ? ".obj" : ".ply");
-    if (obj)
-      write_obj(dir + "/" + file, shape);
-    else
-      write_ply(dir + "/" + file, shape);
-    x << "  <shape type=\"" << (obj ? "obj" : "ply") << "\" id=\"" << shape["name"].get<std::string>() << "\">\n"
-      << "    <string name=\"filename\" value=\"" << file << "\"/>\n"
-      << (obj ? "    <boolean name=\"flip_tex_coords\" value=\"false\"/>\n" : "") << "    <ref id=\""
-      << shape["material"].get<std::string>() << "\"/>\n";
-    if (shape.contains("emitter"))
-      x << "    <emitter type=\"area\"><rgb name=\"radiance\" value=\"" << rgb(shape["emitter"]["radiance"])
-        << "\"/></emitter>\n";
-    x << "  </shape>\n";
-  }
+  for (const auto& shape : s["shapes"]) x << shape_xml(dir, shape, k++ % 2 == 0);
   x << "</scene>\n";
   std::ofstream(dir + "/cornell.xml") << x.str();
   return dir + "/cornell.xml";
@@ -148,6 +180,21 @@ std::string error_of(const std::string& path) {
   return "(no error)";
 }
 
+struct ErrorCase {
+  std::string body, message;
+};
+// Each body, inside <scene version="3.0.0">, is a one-line error that starts with the file's path and
+// contains the message.
+void check_errors(const std::string& dir, const std::vector<ErrorCase>& cases) {
+  for (const ErrorCase& c : cases) {
+    INFO(c.body);
+    const std::string path = write(dir, "scene.xml", "<scene version=\"3.0.0\">\n" + c.body + "</scene>\n");
+    const std::string e = error_of(path);
+    CHECK_THAT(e, Catch::Contains(c.message) && Catch::StartsWith(path + ": "));
+    CHECK(e.find('\n') == std::string::npos);
+  }
+}
+
 }  // namespace
 
 TEST_CASE("the Mitsuba Cornell box as XML with OBJ and PLY meshes renders like its JSON scene", "[xml]") {
@@ -157,23 +204,7 @@ TEST_CASE("the Mitsuba Cornell box as XML with OBJ and PLY meshes renders like i
   REQUIRE(xml->meshes.size() == ref->meshes.size());
   CHECK(xml->settings.spp == ref->settings.spp);
   CHECK(xml->settings.max_depth == ref->settings.max_depth);
-  for (Scene* s : {xml.get(), ref.get()}) {
-    s->cameras[0].width = s->cameras[0].height = 48;
-    s->cameras[0].update();
-  }
-  const Image a = render(*xml, {0, 16, 3, false}), b = render(*ref, {0, 16, 3, false});
-  double diff = 0, sum = 0;
-  size_t differing = 0;
-  for (size_t i = 0; i < a.data.size(); ++i) {
-    diff += std::abs(double(a.data[i]) - b.data[i]);
-    sum += b.data[i];
-    differing += a.data[i] != b.data[i];
-  }
-  INFO("pixels values that differ: " << differing << " of " << a.data.size() << ", mean |diff| / mean " << diff / sum);
-  CHECK(sum > 0);
-  // Same meshes and materials; the camera frame goes through lookat → matrix → origin/target/up,
-  // which may round its last bits differently: allow 1e-4 of the mean brightness.
-  CHECK(diff / sum < 1e-4);
+  check_renders_alike(*xml, *ref, 48, 16, 3);
 }
 
 TEST_CASE("OBJ and PLY readers: polygons, relative indices, ASCII PLY, flipped texture coordinates", "[xml][mesh]") {
@@ -266,10 +297,7 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
       "<film type=\"hdrfilm\"><integer name=\"width\" value=\"8\"/><integer name=\"height\" value=\"8\"/>"
       "<rfilter type=\"box\"/></film></sensor>\n";
   const std::string shape = "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/></shape>\n";
-  struct Case {
-    std::string body, message;
-  };
-  const Case cases[] = {
+  const std::vector<ErrorCase> cases = {
       {sensor + shape + "<bsdf type=\"dielectric\" id=\"glass\"/>\n",
        "line 4: <bsdf type=\"dielectric\">: unsupported bsdf type"},
       {sensor + "<shape type=\"disk\"/>\n", "line 3: <shape type=\"disk\">: unsupported shape type"},
@@ -304,13 +332,7 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
        "'abc' is not a finite number"},
       {sensor + shape + "<shape", "malformed XML"},
   };
-  for (const Case& c : cases) {
-    INFO(c.body);
-    const std::string path = write(dir, "scene.xml", "<scene version=\"3.0.0\">\n" + c.body + "</scene>\n");
-    const std::string e = error_of(path);
-    CHECK_THAT(e, Catch::Contains(c.message) && Catch::StartsWith(path + ": "));
-    CHECK(e.find('\n') == std::string::npos);
-  }
+  check_errors(dir, cases);
   // A harmless attribute is one warning, not an error; defaults substitute.
   const std::string ok = write(dir, "ok.xml",
                                "<scene version=\"3.0.0\"><default name=\"w\" value=\"8\"/>"
@@ -404,34 +426,10 @@ std::string write_volume_xml(const std::string& dir) {
     x << "  <bsdf type=\"diffuse\" id=\"" << it.key() << "\">\n    <rgb name=\"reflectance\" value=\""
       << rgb(it.value()["albedo"]) << "\"/>\n  </bsdf>\n";
   }
-  for (const auto& shape : s["shapes"]) {
-    const std::string file = shape["name"].get<std::string>() + ".obj";
-    write_obj(dir + "/" + file, shape);
-    x << "  <shape type=\"obj\" id=\"" << shape["name"].get<std::string>() << "\">\n"
-      << "    <string name=\"filename\" value=\"" << file << "\"/>\n"
-      << "    <boolean name=\"flip_tex_coords\" value=\"false\"/>\n    <ref id=\""
-      << shape["material"].get<std::string>() << "\"/>\n";
-    if (shape.contains("interior"))
-      x << "    <ref name=\"interior\" id=\"" << shape["interior"].get<std::string>() << "\"/>\n";
-    if (shape.contains("emitter"))
-      x << "    <emitter type=\"area\"><rgb name=\"radiance\" value=\"" << rgb(shape["emitter"]["radiance"])
-        << "\"/></emitter>\n";
-    x << "  </shape>\n";
-  }
+  for (const auto& shape : s["shapes"]) x << shape_xml(dir, shape, true);
   x << "</scene>\n";
   std::ofstream(dir + "/volume.xml") << x.str();
   return dir + "/volume.xml";
-}
-
-double relative_difference(const Image& a, const Image& b, size_t* differing) {
-  double diff = 0, sum = 0;
-  *differing = 0;
-  for (size_t i = 0; i < a.data.size(); ++i) {
-    diff += std::abs(double(a.data[i]) - b.data[i]);
-    sum += b.data[i];
-    *differing += a.data[i] != b.data[i];
-  }
-  return sum > 0 ? diff / sum : 1.0;
 }
 
 }  // namespace
@@ -466,16 +464,7 @@ TEST_CASE("the Mitsuba volume scene as XML (heterogeneous medium, gridvolume) re
   CHECK(xml->meshes[size_t(box)].exterior == -1);
   CHECK(xml->materials[size_t(xml->meshes[size_t(box)].material)].is_null);
   CHECK(xml->settings.max_depth == ref->settings.max_depth);
-  for (Scene* s : {xml.get(), ref.get()}) {
-    s->cameras[0].width = s->cameras[0].height = 40;
-    s->cameras[0].update();
-  }
-  const Image ia = render(*xml, {0, 8, 5, false}), ib = render(*ref, {0, 8, 5, false});
-  size_t differing = 0;
-  const double rel = relative_difference(ia, ib, &differing);
-  INFO("pixel values that differ: " << differing << " of " << ia.data.size() << ", mean |diff| / mean " << rel);
-  // As for the Cornell box: the camera frame goes through lookat → matrix → origin/target/up.
-  CHECK(rel < 1e-4);
+  check_renders_alike(*xml, *ref, 40, 8, 5);
 }
 
 // Homogeneous media: shape interiors and exteriors, a sensor inside one, values as properties or
@@ -552,14 +541,10 @@ TEST_CASE("Mitsuba homogeneous media: interiors, exteriors, a sensor medium, con
                      {"name": "world", "type": "cube", "material": "null", "interior": "fog",
                       "transform": {"scale": [10, 10, 10]}}]})");
   auto ref = load_scene(json_path);
-  const Image ia = render(*xml, {0, 16, 9, false}), ib = render(*ref, {0, 16, 9, false});
-  size_t differing = 0;
-  const double rel = relative_difference(ia, ib, &differing);
-  INFO("pixel values that differ: " << differing << " of " << ia.data.size() << ", mean |diff| / mean " << rel);
+  const Image img = check_renders_alike(*xml, *ref, 0, 16, 9);
   double sum = 0;
-  for (float v : ia.data) sum += v;
-  CHECK(sum > 0.05 * double(ia.data.size()));  // the environment, seen through the fog
-  CHECK(rel < 1e-4);
+  for (float v : img.data) sum += v;
+  CHECK(sum > 0.05 * double(img.data.size()));  // the environment, seen through the fog
 }
 
 TEST_CASE("unsupported or malformed XML media are errors naming the element and the line", "[xml][media]") {
@@ -587,10 +572,7 @@ TEST_CASE("unsupported or malformed XML media are errors naming the element and 
            "</shape>\n";
   };
   const std::string grid = "<string name=\"filename\" value=\"g.vol\"/>";
-  struct Case {
-    std::string body, message;
-  };
-  const Case cases[] = {
+  const std::vector<ErrorCase> cases = {
       {sensor + shape_with("<medium type=\"absorbing\" name=\"interior\"/>"),
        "line 3: <medium type=\"absorbing\" name=\"interior\">: unsupported medium type"},
       {sensor + shape_with("<medium type=\"homogeneous\" name=\"interior\"><rgb name=\"sigma_t\" value=\"1, 2, 3\"/>"
@@ -647,13 +629,7 @@ TEST_CASE("unsupported or malformed XML media are errors naming the element and 
            shape_with(""),
        "line 3: <ref name=\"outside\">: a sensor's medium is named medium"},
   };
-  for (const Case& c : cases) {
-    INFO(c.body);
-    const std::string path = write(dir, "scene.xml", "<scene version=\"3.0.0\">\n" + c.body + "</scene>\n");
-    const std::string e = error_of(path);
-    CHECK_THAT(e, Catch::Contains(c.message) && Catch::StartsWith(path + ": "));
-    CHECK(e.find('\n') == std::string::npos);
-  }
+  check_errors(dir, cases);
   // A grid file that is not there: the error names it.
   const std::string path =
       write(dir, "missing.xml",
