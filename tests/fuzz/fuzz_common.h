@@ -2,7 +2,7 @@
 // Shared by the libFuzzer harnesses in this folder (see README.md "Sanitizers and fuzzing").
 // - Each input is written to ONE fixed file name in a per-process scratch folder
 //   /tmp/backlight-fuzz/<pid>/, overwritten on every run and removed at exit.
-// - Small valid assets (textures, an environment map, glTF meshes) live in the fixed folder
+// - Small valid assets (textures, an environment map, glTF meshes, .vol grids) live in the fixed folder
 //   /tmp/backlight-fuzz/assets/, so seeds and dictionaries can name them: "../assets/tex.png"
 //   from a scene in the scratch folder, or the absolute path (as `--set` needs).
 // - bl::InputError is the loaders' documented way to reject input and is ignored; any other
@@ -48,6 +48,8 @@ inline void make_assets() {
   install_file(src / "tests/fuzz/corpus/fuzz_gltf/tiny.glb", kAssets + "/tiny.glb");
   install_file(src / "tests/fuzz/corpus/fuzz_mesh/quad.obj", kAssets + "/quad.obj");
   install_file(src / "tests/fuzz/corpus/fuzz_mesh/quad_binary.ply", kAssets + "/quad.ply");
+  install_file(src / "tests/fuzz/corpus/fuzz_vol/grid_2x3x4.vol", kAssets + "/grid.vol");
+  install_file(src / "tests/fuzz/corpus/fuzz_vol/one_voxel.vol", kAssets + "/albedo.vol");
 }
 
 // This process's scratch folder; the first call creates it (and the assets) and removes the
