@@ -505,7 +505,11 @@ TEST_CASE("Mitsuba homogeneous media: interiors, exteriors, a sensor medium, con
   REQUIRE(fog >= 0);
   REQUIRE(haze >= 0);
   const int inner = 3 - fog - haze;  // the anonymous one
-  auto value = [&](const std::string& name) { return xml->params[xml->params.find(name)].value; };
+  auto value = [&](const std::string& name) {
+    const int h = xml->params.find(name);
+    REQUIRE(h >= 0);
+    return xml->params[h].value;
+  };
   const std::string in = xml->media[size_t(inner)].name;
   for (const Medium& m : xml->media) CHECK_FALSE(m.grid);
   CHECK(value("fog.density") == std::vector<float>{0.05f});
