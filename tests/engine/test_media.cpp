@@ -240,6 +240,84 @@ TEST_CASE("Beer-Lambert: light through an absorbing slab behind a null boundary"
   CHECK(m.se < 0.05 * depth * expected);  // the check has power
 }
 
+// Single scattering in a homogeneous sphere (radius 1, σ_t = 1, albedo 0.8, under a constant sky of
+// radiance 1; max depth 2: the sky seen through the medium plus light scattered once) against a
+// quadrature of the same integral, written independently of the renderer: along the camera ray,
+// ∫ e^{−σ_t t} σ_s ∫ p_HG(ω_out, ω') e^{−σ_t ℓ(x_t, ω')} dω' dt + e^{−σ_t chord}, ℓ the distance to
+// the sphere's surface. HG with g > 0 scatters forward (light travelling along the camera ray's
+// direction, from behind the sphere). The camera, far away with a narrow field of view, sees one
+// ray's neighbourhood at impact parameter b (the footprint's curvature and the tessellated sphere,
+// 512 segments, each move the expectation by < 1e-4, against a standard error of ~8e-4; with 64×
+// the samples the render agreed with a finer quadrature to 1σ). Negative controls: the mirrored
+// phase function (−g) or a 10% lower albedo must fail the same comparison.
+TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[media]") {
+  const double sigma_t = 1.0, albedo = 0.8;
+  // The quadrature: ray from (b, 0, 5) along −z, unit sphere at the origin.
+  auto quadrature = [&](double g, double b, double alb) {
+    const double chord = 2 * std::sqrt(1 - b * b), t_entry = -chord / 2;  // t measured from z = 0
+    const int nt = 100, nmu = 400, nphi = 200;
+    const double pi = 3.14159265358979323846;
+    double single = 0;
+    for (int it = 0; it < nt; ++it) {
+      const double t = t_entry + (it + 0.5) / nt * chord;  // x = (b, 0, −t): depth t − t_entry
+      const double x[3] = {b, 0, -t};
+      double inscatter = 0;
+      for (int im = 0; im < nmu; ++im) {
+        // μ = cos of the angle between ω' (towards the light's origin) and the ray direction −z:
+        // light arriving along −z (from behind, ω' = −z, μ = 1) scatters forward into the camera.
+        const double mu = -1 + (im + 0.5) / nmu * 2, s = std::sqrt(1 - mu * mu);
+        const double phase = (1 - g * g) / (4 * pi * std::pow(1 + g * g - 2 * g * mu, 1.5));
+        for (int ip = 0; ip < nphi; ++ip) {
+          const double phi = (ip + 0.5) / nphi * 2 * pi;
+          const double w[3] = {s * std::cos(phi), s * std::sin(phi), -mu};
+          const double xw = x[0] * w[0] + x[1] * w[1] + x[2] * w[2];
+          const double xx = x[0] * x[0] + x[1] * x[1] + x[2] * x[2];
+          const double l = -xw + std::sqrt(xw * xw - xx + 1);
+          inscatter += phase * std::exp(-sigma_t * l);
+        }
+      }
+      inscatter *= (2.0 / nmu) * (2 * pi / nphi);
+      single += std::exp(-sigma_t * (t - t_entry)) * alb * sigma_t * inscatter * (chord / nt);
+    }
+    return single + std::exp(-sigma_t * chord);
+  };
+  for (auto [g, b] : {std::pair{0.0, 0.0}, std::pair{0.6, 0.5}, std::pair{-0.4, 0.3}}) {
+    const std::string dir = test::temp_dir("sphere_ss");
+    std::ofstream(dir + "/scene.json") << R"({
+  "integrator": {"max_depth": 2, "rr_depth": 0},
+  "cameras": [{"origin": [)" << b << R"(, 0, 5], "target": [)"
+                                       << b << R"(, 0, 0], "fov": 0.1, "resolution": [4, 4]}],
+  "media": {"fog": {"type": "homogeneous", "density": 1, "scale": 1, "albedo": 0.8, "phase": {"type": "hg", "g": )"
+                                       << g << R"(}}},
+  "materials": {"boundary": {"type": "null"}},
+  "shapes": [{"name": "ball", "type": "sphere", "segments": 512, "material": "boundary", "interior": "fog"}],
+  "environment": {"type": "constant", "radiance": 1}
+})";
+    auto scene = load_scene(dir + "/scene.json");
+    std::vector<double> batch_means;
+    for (int batch = 0; batch < 16; ++batch) {
+      const Image img = render(*scene, {0, 1024, 700 + uint64_t(batch), false});
+      double m = 0;
+      for (float v : img.data) m += v;
+      batch_means.push_back(m / double(img.data.size()));
+    }
+    const MeanSe m = stats(batch_means);
+    const double expected = quadrature(g, b, albedo);
+    INFO("g " << g << ", b " << b << ": render " << m.mean << " +- " << m.se << ", quadrature " << expected);
+    CHECK(std::abs(m.mean - expected) < 4 * m.se);
+    CHECK(m.se < 2e-3 * expected);  // the check has power
+    // Negative controls: the same render against a wrong reference fails.
+    const double lower_albedo = quadrature(g, b, 0.9 * albedo);
+    INFO("albedo 0.72: " << lower_albedo);
+    CHECK(std::abs(m.mean - lower_albedo) > 4 * m.se);
+    if (g != 0.0) {
+      const double mirrored = quadrature(-g, b, albedo);
+      INFO("mirrored phase: " << mirrored);
+      CHECK(std::abs(m.mean - mirrored) > 4 * m.se);
+    }
+  }
+}
+
 TEST_CASE("white furnace: an albedo-1 medium under a uniform sky renders the sky", "[media]") {
   for (float g : {-0.5f, 0.f, 0.7f}) {
     FogOptions o;
