@@ -33,8 +33,9 @@ struct RestoreBudget {
   ~RestoreBudget() { set_local_gradient_budget(budget); }
 };
 
-std::unique_ptr<Scene> cornell(int res) {
-  auto scene = load_scene(std::string(BL_SOURCE_DIR) + "/scenes/cornell/scene.json");
+// A bundled scene with every camera at res × res pixels.
+std::unique_ptr<Scene> bundled(const std::string& name, int res) {
+  auto scene = load_scene(std::string(BL_SOURCE_DIR) + "/scenes/" + name + "/scene.json");
   for (auto& c : scene->cameras) c.width = c.height = res, c.update();
   return scene;
 }
@@ -53,14 +54,14 @@ size_t count_differences(const Image& a, const Image& b) {
 }
 
 std::vector<std::vector<float>> gradients(Scene& scene, const Image& target, GradientMethod m, int threads,
-                                          Image* image) {
+                                          Image* image, const std::vector<std::string>& names = {}) {
   return with_threads(threads, [&] {
     GradientRequest rq;
     rq.method = m;
     rq.target = &target;
     rq.pass = {0, 4, 7, false};
     rq.adjoint_seed = 7;
-    scene.params.require_grad({});
+    scene.params.require_grad(names);
     GradientResult r = compute_gradient(scene, rq);
     if (image) *image = r.image;
     std::vector<std::vector<float>> g;
@@ -69,11 +70,54 @@ std::vector<std::vector<float>> gradients(Scene& scene, const Image& target, Gra
   });
 }
 
+// The gradients of one run on 1 thread and one on 2 (`gradients` above), parameter by parameter:
+// rounding only. Per-thread double sums agree to a float ulp, atomic float adds to float-sum
+// precision.
+void compare_across_threads(const Scene& scene, const std::vector<std::vector<float>>& g1,
+                            const std::vector<std::vector<float>>& g2) {
+  for (size_t i = 0; i < g1.size(); ++i) {
+    const Param& p = scene.params.all()[i];
+    if (!p.requires_grad) continue;  // geometry parameters: not in "all"
+    double norm = 0, diff = 0, max_abs = 0;
+    size_t differing = 0;
+    for (size_t k = 0; k < p.size(); ++k) {
+      norm += double(g1[i][k]) * g1[i][k];
+      diff += double(g1[i][k] - g2[i][k]) * double(g1[i][k] - g2[i][k]);
+      max_abs = std::max(max_abs, double(std::abs(g1[i][k])));
+      differing += g1[i][k] != g2[i][k];
+    }
+    norm = std::sqrt(norm), diff = std::sqrt(diff);
+    // How the two runs accumulated this parameter (engine/core/params.h).
+    const bool local = GradientLayout(scene.params, 1).local(int(i)) && GradientLayout(scene.params, 2).local(int(i));
+    INFO(p.name << " (" << p.size() << " values, " << (local ? "per-thread double sums" : "atomic float adds")
+                << "): |g| = " << norm << ", |g1 − g2| = " << diff << ", " << differing << " elements differ");
+    CHECK(norm > 0);
+    // Both kinds: the difference is rounding only, far below 1e-5 of the gradient's norm
+    // (measured on this scene: 0 for small parameters, ~5e-8 relative for atomic ones, where
+    // a few dozen of the 384/768 elements differ in their last bits from run to run).
+    CHECK(diff <= 1e-5 * norm);
+    if (local) {
+      // Double sums rounded once to float: measured bitwise equal in every run, but a
+      // different grouping of the double partial sums may in rare cases round to the
+      // neighbouring float, so one float ulp is allowed.
+      for (size_t k = 0; k < p.size(); ++k)
+        CHECK(std::abs(g1[i][k] - g2[i][k]) <= 1.2e-7f * std::abs(g1[i][k]) + 1e-30f);
+    } else {
+      // Atomic float adds in varying order: each element agrees to float-sum precision.
+      for (size_t k = 0; k < p.size(); ++k)
+        if (std::abs(g1[i][k] - g2[i][k]) > 1e-5 * std::abs(g1[i][k]) + 1e-7 * max_abs) {
+          FAIL_CHECK("element " << k << ": " << g1[i][k] << " vs " << g2[i][k]);
+          break;
+        }
+    }
+  }
+}
+
 }  // namespace
 
 TEST_CASE("primal renders are bitwise identical for 1 and 2 threads", "[determinism]") {
   SECTION("scenes/cornell, 64x64, 4 spp") {
-    auto scene = cornell(64);
+    auto scene = bundled("cornell", 64);
     Image one = with_threads(1, [&] { return render(*scene, {0, 4, 3, false}); });
     Image two = with_threads(2, [&] { return render(*scene, {0, 4, 3, false}); });
     Image again = with_threads(2, [&] { return render(*scene, {0, 4, 3, false}); });
@@ -86,6 +130,15 @@ TEST_CASE("primal renders are bitwise identical for 1 and 2 threads", "[determin
   }
   SECTION("the generated open scene (bitmap, envmap, plastic, conductor, area light, roulette)") {
     auto scene = open_scene();
+    Image one = with_threads(1, [&] { return render(*scene, {0, 4, 3, false}); });
+    Image two = with_threads(2, [&] { return render(*scene, {0, 4, 3, false}); });
+    INFO(count_differences(one, two) << " of " << one.data.size() << " values differ");
+    CHECK(bitwise_equal(one, two));
+  }
+  SECTION("scenes/mitsuba-volume: a 64³ density grid behind a null box (delta and ratio tracking)") {
+    // Tracking draws a variable number of random numbers per segment, from per-(path, segment)
+    // streams, so the image does not depend on which thread ran which pixel.
+    auto scene = bundled("mitsuba-volume", 48);
     Image one = with_threads(1, [&] { return render(*scene, {0, 4, 3, false}); });
     Image two = with_threads(2, [&] { return render(*scene, {0, 4, 3, false}); });
     INFO(count_differences(one, two) << " of " << one.data.size() << " values differ");
@@ -111,43 +164,27 @@ TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
     // The image rendered on the way (fused primal) is the primal render, bit for bit.
     CHECK(bitwise_equal(img1, img2));
     CHECK(bitwise_equal(img1, render(*scene, {0, 4, 7, false})));
-    for (size_t i = 0; i < g1.size(); ++i) {
-      const Param& p = scene->params.all()[i];
-      if (!p.requires_grad) continue;  // geometry parameters: not in "all"
-      double norm = 0, diff = 0, max_abs = 0;
-      size_t differing = 0;
-      for (size_t k = 0; k < p.size(); ++k) {
-        norm += double(g1[i][k]) * g1[i][k];
-        diff += double(g1[i][k] - g2[i][k]) * double(g1[i][k] - g2[i][k]);
-        max_abs = std::max(max_abs, double(std::abs(g1[i][k])));
-        differing += g1[i][k] != g2[i][k];
-      }
-      norm = std::sqrt(norm), diff = std::sqrt(diff);
-      // How the two runs accumulated this parameter (engine/core/params.h).
-      const bool local =
-          GradientLayout(scene->params, 1).local(int(i)) && GradientLayout(scene->params, 2).local(int(i));
-      INFO(p.name << " (" << p.size() << " values, " << (local ? "per-thread double sums" : "atomic float adds")
-                  << "): |g| = " << norm << ", |g1 − g2| = " << diff << ", " << differing << " elements differ");
-      CHECK(norm > 0);
-      // Both kinds: the difference is rounding only, far below 1e-5 of the gradient's norm
-      // (measured on this scene: 0 for small parameters, ~5e-8 relative for atomic ones, where
-      // a few dozen of the 384/768 elements differ in their last bits from run to run).
-      CHECK(diff <= 1e-5 * norm);
-      if (local) {
-        // Double sums rounded once to float: measured bitwise equal in every run, but a
-        // different grouping of the double partial sums may in rare cases round to the
-        // neighbouring float, so one float ulp is allowed.
-        for (size_t k = 0; k < p.size(); ++k)
-          CHECK(std::abs(g1[i][k] - g2[i][k]) <= 1.2e-7f * std::abs(g1[i][k]) + 1e-30f);
-      } else {
-        // Atomic float adds in varying order: each element agrees to float-sum precision.
-        for (size_t k = 0; k < p.size(); ++k)
-          if (std::abs(g1[i][k] - g2[i][k]) > 1e-5 * std::abs(g1[i][k]) + 1e-7 * max_abs) {
-            FAIL_CHECK("element " << k << ": " << g1[i][k] << " vs " << g2[i][k]);
-            break;
-          }
-      }
-    }
+    compare_across_threads(*scene, g1, g2);
+  }
+}
+
+TEST_CASE("prb gradients of a density grid across thread counts", "[determinism][gradient][media]") {
+  // The 64³ grid (2 MB of doubles per thread) sums per thread; scale, albedo and g are small
+  // parameters. With no local budget the grid takes atomic float adds instead.
+  auto scene = bundled("mitsuba-volume", 32);
+  Image target = render(*scene, {0, 16, 99, false});
+  for (auto& v : target.data) v *= 0.7f;
+  const std::vector<std::string> names = {"smoke.density", "smoke.scale", "smoke.albedo", "smoke.g"};
+  const size_t default_budget = local_gradient_budget();
+  const RestoreBudget restore{default_budget};
+  for (size_t budget : {default_budget, size_t(0)}) {
+    INFO("local gradient budget " << budget << " bytes");
+    set_local_gradient_budget(budget);
+    Image img1, img2;
+    auto g1 = gradients(*scene, target, GradientMethod::Prb, 1, &img1, names);
+    auto g2 = gradients(*scene, target, GradientMethod::Prb, 2, &img2, names);
+    CHECK(bitwise_equal(img1, img2));
+    compare_across_threads(*scene, g1, g2);
   }
 }
 
