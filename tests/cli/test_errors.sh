@@ -6,7 +6,8 @@
 # with "backlight: ", names the file / flag / parameter at fault and the problem, never crashes
 # (no signal) and writes no output.
 # Good paths: --help texts, atomic image writes, `params --json/--dump`, `grad` outputs
-# (gradients.json layout, per-parameter files), `grad --adjoint-image` and `check`.
+# (gradients.json layout, per-parameter files; grids as .vdb, .vol and a PNG sheet), `grad
+# --adjoint-image` and `check`.
 # Runs every case and reports all failures at the end (exit 1 if any).
 set -uo pipefail
 
@@ -245,6 +246,9 @@ open("vol/negative.vol", "wb").write(head + struct.pack("<%df" % n, *vals))
 small = bytearray(head)
 small[8:20] = struct.pack("<3i", 8, 8, 8)
 open("vol/small.vol", "wb").write(bytes(small) + struct.pack("<512f", *([0.5] * 512)))
+huge = bytearray(head)  # 2048³ voxels (32 GB of floats) announced by a 48-byte file
+huge[8:20] = struct.pack("<3i", 2048, 2048, 2048)
+open("vol/huge.vol", "wb").write(bytes(huge))
 PY
 expect_error medium_nan_voxel "nan.vol" "re:finite|NaN" -- \
   render "$(vv nanvox 's["media"]["smoke"]["density"]["file"] = "nan.vol"')" -o o.exr -q
@@ -254,6 +258,11 @@ expect_error set_grid_wrong_size "small.vol" "[8,8,8,1]" "[64,64,64,1]" -- \
   render vol/scene.json -o o.exr --spp 1 --set smoke.density=vol/small.vol -q
 expect_error set_grid_nan "nan.vol" "re:finite|NaN" -- \
   render vol/scene.json -o o.exr --spp 1 --set smoke.density=vol/nan.vol -q
+# Refused from the header, before allocating (peak RSS stays small: the test's memory is not raised).
+expect_error medium_grid_too_large "huge.vol" "exceeds the limit" -- \
+  render "$(vv hugevox 's["media"]["smoke"]["density"]["file"] = "huge.vol"')" -o o.exr -q
+expect_error set_grid_too_large "huge.vol" "exceeds the limit" -- \
+  render vol/scene.json -o o.exr --spp 1 --set smoke.density=vol/huge.vol -q
 expect_error rb_with_media "scene.json" "rb does not support scenes with media" -- \
   grad vol/scene.json --method rb --spp 1 --adjoint-image "$repo/tests/data/mitsuba3-volume/adjoint.exr" --out g_rb -q
 
@@ -487,6 +496,54 @@ PY
   [ -f gadj/image.exr ] || fail "grad --adjoint-image: no image.exr"
 }
 in_background good_grad_adjoint
+
+# Grids: params --dump and grad write each grid as .vdb, .vol and a PNG sheet (mid-slices and a
+# maximum projection); the .vol holds the values, the .vdb reads back as the grid.
+good_grid_files() {
+  local vol="$repo/scenes/mitsuba-volume/scene.json" f
+  expect_ok params_dump_grid params "$vol" --dump gdump || return
+  for f in smoke.density.vdb smoke.density.vol smoke.density.png; do
+    [ -s "gdump/$f" ] || fail "params --dump of a grid: no gdump/$f"
+  done
+  "$bin" render "$vol" --resolution 16x16 --spp 2 --seed 3 -q -o tvol.exr --set smoke.scale=4 2>/dev/null
+  expect_ok grad_grid grad "$vol" --resolution 16x16 --spp 1 --target tvol.exr --param smoke.density --out ggrid -q ||
+    return
+  for f in smoke.density.grad.vdb smoke.density.grad.vol smoke.density.grad.png; do
+    [ -s "ggrid/$f" ] || fail "grad of a grid: no ggrid/$f"
+  done
+  python3 - "$repo/scenes/mitsuba-volume/density.vol" gdump ggrid <<'PY' || fail "grid files of params --dump / grad"
+import json, math, struct, sys
+def vol(path):
+    data = open(path, "rb").read()
+    assert data[:4] == b"VOL\x03", path
+    enc, nx, ny, nz, ch = struct.unpack("<5i", data[4:24])
+    assert enc == 1 and len(data) == 48 + 4 * nx * ny * nz * ch, (path, enc, nx, ny, nz, ch, len(data))
+    return (nx, ny, nz, ch), struct.unpack(f"<{nx * ny * nz * ch}f", data[48:])
+src, dump, grad = sys.argv[1:]
+shape, truth = vol(src)
+dshape, dumped = vol(dump + "/smoke.density.vol")
+assert dshape == shape == (64, 64, 64, 1) and dumped == truth, "the dumped .vol is not the scene's grid"
+gshape, g = vol(grad + "/smoke.density.grad.vol")
+assert gshape == shape, gshape
+e = json.load(open(grad + "/gradients.json"))["parameters"]["smoke.density"]
+assert e["file"] == "smoke.density.grad.vdb" and e["shape"] == [64, 64, 64, 1], e
+norm = math.sqrt(sum(v * v for v in g))
+assert norm > 0 and abs(norm - e["grad_norm"]) <= 1e-4 * norm, (norm, e["grad_norm"])
+for f in (dump + "/smoke.density.vdb", grad + "/smoke.density.grad.vdb"):
+    assert open(f, "rb").read(4) == b" BDV", f + ": not an OpenVDB file"  # magic 0x56444220
+PY
+  for f in gdump/smoke.density.png ggrid/smoke.density.grad.png; do
+    [[ "$(image_size "$f")" =~ ^[0-9]+x[0-9]+$ ]] || fail "$f is not a PNG"
+  done
+  expect_ok render_dumped_vdb render "$vol" --resolution 8x8 --spp 1 -q -o vdb_back.exr \
+    --set smoke.density=gdump/smoke.density.vdb || return
+  # The dumped file holds one float grid, named smoke.density: asking for another is an error.
+  cp gdump/smoke.density.vdb vol/dumped.vdb
+  expect_error_now vdb_grid_missing "dumped.vdb" "density" -- \
+    render "$(vv vdbgrid 's["media"]["smoke"]["density"] = {"type": "vdb", "file": "dumped.vdb", "grid": "density"}')" \
+    -o o.exr --spp 1 -q
+}
+in_background good_grid_files
 
 # check: a table, exit 0.
 good_check() {
