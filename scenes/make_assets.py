@@ -4,7 +4,9 @@
     scenes/cornell/wall.png      1024x1024 RGB albedo texture of the Cornell box's back wall
     scenes/gltf/checker.png      256x256 RGB base-colour texture of the glTF ground plane
     scenes/gltf/scene.gltf/.bin  a small glTF 2.0 scene (ground, two cubes, emissive quad, camera)
-    scenes/smoke/density.vol     128³ procedural smoke density (Mitsuba .vol; 8 MB, not committed)
+    scenes/smoke/density.vdb     128³ procedural smoke density (OpenVDB, float grid "density", the
+                                 scene's; not committed)
+    scenes/smoke/density.vol     the same grid as a Mitsuba .vol (for Mitsuba and the benchmarks)
     scenes/smoke/sky.pfm         64x32 sky environment map (latitude-longitude, linear RGB)
     scenes/deform/sphere.ply     unit icosphere (4 subdivisions: 2562 vertices, 5120 triangles)
     scenes/deform/target.ply     the same vertices moved onto a smooth non-spherical blob
@@ -13,7 +15,7 @@
 
 Deterministic and idempotent: runs from any working directory, writes a file only when its bytes
 change, and reads every output back to check it. Needs Debian's python3 with numpy and matplotlib
-(Pillow, a matplotlib dependency, writes the RGB PNGs).
+(Pillow, a matplotlib dependency, writes the RGB PNGs); the smoke's .vdb needs python3-openvdb.
 """
 
 import io
@@ -535,6 +537,53 @@ def make_smoke():
     back = np.frombuffer((SMOKE / "density.vol").read_bytes()[48:], dtype="<f4")
     assert back.size == rho.size and np.array_equal(back, rho.ravel()), "density.vol read-back mismatch"
     write_if_changed(SMOKE / "sky.pfm", pfm_bytes(sky()))
+    write_vdb_if_changed(SMOKE / "density.vdb", rho, (-1.0, 0.0, -1.0, 1.0, 2.0, 1.0))
+
+
+def write_vdb_if_changed(path, rho, bbox):
+    """rho[iz, iy, ix] as an OpenVDB float grid named "density" whose voxel centres sit where the
+    .vol's do: index (i, j, k) = (x, y, z) at bbox_min + (index + 0.5) · voxel size. Every voxel
+    is written (the corner voxels stay active even where the density is 0), so the active bounding
+    box, from which readers take the grid's extent, is the whole 128³ box. OpenVDB stamps each file
+    with a random UUID, so "unchanged" compares the grid read back, not the bytes."""
+    import pyopenvdb as vdb  # python3-openvdb (tools/deps)
+
+    nz, ny, nx = rho.shape
+    size = [(bbox[3 + a] - bbox[a]) / n for a, n in enumerate((nx, ny, nz))]
+    assert max(size) - min(size) < 1e-12, "OpenVDB voxels are cubes"
+    h = size[0]
+
+    def read(p):
+        g = vdb.read(str(p), "density")
+        lo, hi = g.evalActiveVoxelBoundingBox()
+        out = np.zeros((hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1), dtype=np.float32)
+        g.copyToArray(out, ijk=lo)
+        centre = g.transform.indexToWorld((0, 0, 0))
+        return lo, out.transpose(2, 1, 0), centre, g.transform.voxelSize()
+
+    want_centre = tuple(bbox[a] + 0.5 * h for a in range(3))
+
+    def matches(p):
+        lo, values, centre, voxel = read(p)
+        return (tuple(lo) == (0, 0, 0) and values.shape == rho.shape and np.array_equal(values, rho)
+                and np.allclose(centre, want_centre, rtol=0, atol=1e-12) and np.allclose(voxel, (h, h, h), rtol=0, atol=1e-15))
+
+    if path.exists() and matches(path):
+        print(f"unchanged {path.relative_to(SCENES.parent)} (grid read back)")
+        return
+    grid = vdb.FloatGrid(0.0)
+    grid.name = "density"
+    grid.copyFromArray(np.ascontiguousarray(rho.transpose(2, 1, 0)), ijk=(0, 0, 0), tolerance=0.0)
+    acc = grid.getAccessor()
+    for ijk in ((0, 0, 0), (nx - 1, ny - 1, nz - 1)):
+        acc.setActiveState(ijk, True)
+    grid.transform = vdb.createLinearTransform(
+        [[h, 0, 0, 0], [0, h, 0, 0], [0, 0, h, 0], [want_centre[0], want_centre[1], want_centre[2], 1]])
+    tmp = path.with_name(path.name + ".tmp")
+    vdb.write(str(tmp), grids=[grid])
+    assert matches(tmp), f"{tmp}: read-back mismatch"
+    tmp.replace(path)
+    print(f"wrote     {path.relative_to(SCENES.parent)} ({path.stat().st_size} bytes)")
 
 
 DEFORM = SCENES / "deform"
