@@ -248,19 +248,23 @@ TEST_CASE("Beer-Lambert: light through an absorbing slab behind a null boundary"
 // direction, from behind the sphere). The camera, far away with a narrow field of view, sees one
 // ray's neighbourhood at impact parameter b (the footprint's curvature and the tessellated sphere,
 // 512 segments, each move the expectation by < 1e-4, against a standard error of ~8e-4; with 64×
-// the samples the render agreed with a finer quadrature to 1σ). Negative controls: the mirrored
-// phase function (−g) or a 10% lower albedo must fail the same comparison.
+// the samples the render agreed with a finer quadrature to 1σ). A camera at the centre, inside
+// the medium (the camera's "medium"), sees the radius instead: rays that start in a medium.
+// Negative controls: the mirrored phase function (−g) or a 10% lower albedo must fail the same
+// comparison.
 TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[media]") {
   const double sigma_t = 1.0, albedo = 0.8;
-  // The quadrature: ray from (b, 0, 5) along −z, unit sphere at the origin.
-  auto quadrature = [&](double g, double b, double alb) {
-    const double chord = 2 * std::sqrt(1 - b * b), t_entry = -chord / 2;  // t measured from z = 0
+  // The quadrature along a ray parallel to −z at impact parameter b, unit sphere at the origin:
+  // from outside, the ray crosses the whole chord; from a camera at the centre (inside: b = 0), it
+  // starts in the medium and crosses the radius.
+  auto quadrature = [&](double g, double b, double alb, bool inside) {
+    const double z0 = inside ? 0.0 : std::sqrt(1 - b * b), length = inside ? 1.0 : 2 * z0;
     const int nt = 100, nmu = 400, nphi = 200;
     const double pi = 3.14159265358979323846;
     double single = 0;
     for (int it = 0; it < nt; ++it) {
-      const double t = t_entry + (it + 0.5) / nt * chord;  // x = (b, 0, −t): depth t − t_entry
-      const double x[3] = {b, 0, -t};
+      const double t = (it + 0.5) / nt * length;  // depth in the medium
+      const double x[3] = {b, 0, z0 - t};
       double inscatter = 0;
       for (int im = 0; im < nmu; ++im) {
         // μ = cos of the angle between ω' (towards the light's origin) and the ray direction −z:
@@ -277,16 +281,23 @@ TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[medi
         }
       }
       inscatter *= (2.0 / nmu) * (2 * pi / nphi);
-      single += std::exp(-sigma_t * (t - t_entry)) * alb * sigma_t * inscatter * (chord / nt);
+      single += std::exp(-sigma_t * t) * alb * sigma_t * inscatter * (length / nt);
     }
-    return single + std::exp(-sigma_t * chord);
+    return single + std::exp(-sigma_t * length);
   };
-  for (auto [g, b] : {std::pair{0.0, 0.0}, std::pair{0.6, 0.5}, std::pair{-0.4, 0.3}}) {
+  struct Case {
+    double g, b;
+    bool inside;
+  };
+  for (auto [g, b, inside] :
+       {Case{0.0, 0.0, false}, Case{0.6, 0.5, false}, Case{-0.4, 0.3, false}, Case{0.6, 0.0, true}}) {
     const std::string dir = test::temp_dir("sphere_ss");
     std::ofstream(dir + "/scene.json") << R"({
   "integrator": {"max_depth": 2, "rr_depth": 0},
-  "cameras": [{"origin": [)" << b << R"(, 0, 5], "target": [)"
-                                       << b << R"(, 0, 0], "fov": 0.1, "resolution": [4, 4]}],
+  "cameras": [{"origin": [)" << b << ", 0, "
+                                       << (inside ? 0 : 5) << R"(], "target": [)" << b << ", 0, " << (inside ? -1 : 0)
+                                       << R"(], "fov": 0.1, "resolution": [4, 4])"
+                                       << (inside ? R"(, "medium": "fog")" : "") << R"(}],
   "media": {"fog": {"type": "homogeneous", "density": 1, "scale": 1, "albedo": 0.8, "phase": {"type": "hg", "g": )"
                                        << g << R"(}}},
   "materials": {"boundary": {"type": "null"}},
@@ -302,16 +313,17 @@ TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[medi
       batch_means.push_back(m / double(img.data.size()));
     }
     const MeanSe m = stats(batch_means);
-    const double expected = quadrature(g, b, albedo);
-    INFO("g " << g << ", b " << b << ": render " << m.mean << " +- " << m.se << ", quadrature " << expected);
+    const double expected = quadrature(g, b, albedo, inside);
+    INFO("g " << g << ", b " << b << (inside ? ", camera inside" : "") << ": render " << m.mean << " +- " << m.se
+              << ", quadrature " << expected);
     CHECK(std::abs(m.mean - expected) < 4 * m.se);
     CHECK(m.se < 2e-3 * expected);  // the check has power
     // Negative controls: the same render against a wrong reference fails.
-    const double lower_albedo = quadrature(g, b, 0.9 * albedo);
+    const double lower_albedo = quadrature(g, b, 0.9 * albedo, inside);
     INFO("albedo 0.72: " << lower_albedo);
     CHECK(std::abs(m.mean - lower_albedo) > 4 * m.se);
     if (g != 0.0) {
-      const double mirrored = quadrature(-g, b, albedo);
+      const double mirrored = quadrature(-g, b, albedo, inside);
       INFO("mirrored phase: " << mirrored);
       CHECK(std::abs(m.mean - mirrored) > 4 * m.se);
     }
