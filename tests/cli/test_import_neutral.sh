@@ -2,7 +2,8 @@
 # Self-test of tools/import-neutral.
 # Usage: tests/cli/test_import_neutral.sh [REPO_ROOT] [SHARED_DIR]
 #   REPO_ROOT  defaults to this script's ../..
-#   SHARED_DIR defaults to REPO_ROOT/../shared (must contain reference/mitsuba3-cornell)
+#   SHARED_DIR defaults to REPO_ROOT/../shared (must contain reference/mitsuba3-cornell and
+#              reference/mitsuba3-volume)
 # Exits non-zero on the first failure.
 set -euo pipefail
 
@@ -57,7 +58,24 @@ assert os.path.isfile(tex), tex
 PY
 cmp -s "$ref/wall_texture.exr" "$tmp/textured/wall_texture.exr" || fail "texture not copied unchanged"
 
-# 3. Errors: exit status 2 and exactly one stderr line.
+# 3. The volume reference (a grid medium behind a null box) converts into the committed
+#    scenes/mitsuba-volume: the same scene JSON, the grid copied byte for byte.
+vref="$shared/reference/mitsuba3-volume"
+[ -f "$vref/scene.json" ] || fail "missing $vref/scene.json"
+"$tool" "$vref/scene.json" "$tmp/volume" >/dev/null 2>"$tmp/volume.err" \
+  || fail "conversion of the volume scene failed: $(cat "$tmp/volume.err")"
+python3 - "$tmp/volume/scene.json" "$repo/scenes/mitsuba-volume/scene.json" <<'PY' || fail "volume scene differs from scenes/mitsuba-volume"
+import json, sys
+new, committed = (json.load(open(p)) for p in sys.argv[1:])
+assert new == committed, "re-converted scene.json differs from the committed one"
+m = new["media"]["smoke"]
+assert m["type"] == "grid" and m["density"] == {"type": "vol", "file": "density.vol"} and m["scale"] == 6.0, m
+box = [sh for sh in new["shapes"] if sh.get("interior") == "smoke"]
+assert len(box) == 1 and new["materials"][box[0]["material"]]["type"] == "null", box
+PY
+cmp -s "$tmp/volume/density.vol" "$repo/scenes/mitsuba-volume/density.vol" || fail "density.vol not copied unchanged"
+
+# 4. Errors: exit status 2 and exactly one stderr line.
 expect_error() {  # name, args...
   local name="$1"; shift
   local rc=0
