@@ -542,10 +542,11 @@ def make_smoke():
 
 def write_vdb_if_changed(path, rho, bbox):
     """rho[iz, iy, ix] as an OpenVDB float grid named "density" whose voxel centres sit where the
-    .vol's do: index (i, j, k) = (x, y, z) at bbox_min + (index + 0.5) · voxel size. Every voxel
-    is written (the corner voxels stay active even where the density is 0), so the active bounding
-    box, from which readers take the grid's extent, is the whole 128³ box. OpenVDB stamps each file
-    with a random UUID, so "unchanged" compares the grid read back, not the bytes."""
+    .vol's do: index (i, j, k) = (x, y, z) at bbox_min + (index + 0.5) · voxel size. Voxels equal
+    to the background, 0, stay inactive (they read as 0); the two corner voxels are made active so
+    that the active bounding box, from which readers take the grid's extent, is the whole 128³ box.
+    OpenVDB stamps each file with a random UUID, so "unchanged" compares the grid read back, not
+    the bytes."""
     import pyopenvdb as vdb  # python3-openvdb (tools/deps)
 
     nz, ny, nx = rho.shape
@@ -566,9 +567,16 @@ def write_vdb_if_changed(path, rho, bbox):
     def matches(p):
         lo, values, centre, voxel = read(p)
         return (tuple(lo) == (0, 0, 0) and values.shape == rho.shape and np.array_equal(values, rho)
-                and np.allclose(centre, want_centre, rtol=0, atol=1e-12) and np.allclose(voxel, (h, h, h), rtol=0, atol=1e-15))
+                and np.allclose(centre, want_centre, rtol=0, atol=1e-12)
+                and np.allclose(voxel, (h, h, h), rtol=0, atol=1e-15))
 
-    if path.exists() and matches(path):
+    def existing_matches():
+        try:
+            return path.exists() and matches(path)
+        except (KeyError, RuntimeError, IOError):  # another grid name, or not a VDB file: rewrite it
+            return False
+
+    if existing_matches():
         print(f"unchanged {path.relative_to(SCENES.parent)} (grid read back)")
         return
     grid = vdb.FloatGrid(0.0)
