@@ -139,6 +139,19 @@ MeanSe stats(const std::vector<double>& x) {
   return {m, std::sqrt(v / double(x.size() - 1) / double(x.size()))};
 }
 
+// The mean pixel value of `batches` renders (seeds seed0, seed0 + 1, ...) with its standard error
+// from the spread of the batch means.
+MeanSe batch_mean(const Scene& scene, int batches, int spp, uint64_t seed0) {
+  std::vector<double> means;
+  for (int b = 0; b < batches; ++b) {
+    const Image img = render(scene, {0, spp, seed0 + uint64_t(b), false});
+    double m = 0;
+    for (float v : img.data) m += v;
+    means.push_back(m / double(img.data.size()));
+  }
+  return stats(means);
+}
+
 GradientRequest functional_request(const Image& a, GradientMethod method, int spp, uint64_t seed) {
   GradientRequest rq;
   rq.method = method;
@@ -305,14 +318,7 @@ TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[medi
   "environment": {"type": "constant", "radiance": 1}
 })";
     auto scene = load_scene(dir + "/scene.json");
-    std::vector<double> batch_means;
-    for (int batch = 0; batch < 16; ++batch) {
-      const Image img = render(*scene, {0, 1024, 700 + uint64_t(batch), false});
-      double m = 0;
-      for (float v : img.data) m += v;
-      batch_means.push_back(m / double(img.data.size()));
-    }
-    const MeanSe m = stats(batch_means);
+    const MeanSe m = batch_mean(*scene, 16, 1024, 700);
     const double expected = quadrature(g, b, albedo, inside);
     INFO("g " << g << ", b " << b << (inside ? ", camera inside" : "") << ": render " << m.mean << " +- " << m.se
               << ", quadrature " << expected);
@@ -341,14 +347,7 @@ TEST_CASE("white furnace: an albedo-1 medium under a uniform sky renders the sky
     o.rr_depth = 5;
     o.resolution = 16;
     auto scene = fog_scene(o);
-    std::vector<double> batch_means;
-    for (int b = 0; b < 16; ++b) {
-      const Image img = render(*scene, {0, 8, 300 + uint64_t(b), false});
-      double m = 0;
-      for (float v : img.data) m += v;
-      batch_means.push_back(m / double(img.data.size()));
-    }
-    const MeanSe m = stats(batch_means);
+    const MeanSe m = batch_mean(*scene, 16, 8, 300);
     INFO("g = " << g << ": mean " << m.mean << " +- " << m.se);
     CHECK(std::abs(m.mean - 1.0) < 4 * m.se);
     CHECK(m.se < 0.01);
