@@ -31,6 +31,24 @@ fail() { printf 'FAIL: %s\n' "$*" >>"$tmp/failures"; }
 throttle() { while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do wait -n; done; }
 in_background() { cases=$((cases + 1)); throttle; "$@" & }
 
+# run_bin NAME OUT ERR ARGS...: runs backlight, stdout to OUT and stderr to ERR, and returns its
+# status. Under the sanitizers (tools/check --sanitize) LeakSanitizer's tracer can crash while it
+# suspends the threads at exit ("Tracer caught signal 11", then "LeakSanitizer has encountered a
+# fatal error": a known, intermittent fault of the sanitizer runtime, seen once in 158 cases, after
+# the command had done its work). Only that message is retried, once, and the retry is reported; a
+# real leak report ("detected memory leaks") fails as before.
+run_bin() {
+  local name="$1" out="$2" err="$3" rc=0
+  shift 3
+  "$bin" "$@" >"$out" 2>"$err" </dev/null || rc=$?
+  if grep -q "LeakSanitizer has encountered a fatal error" "$err"; then
+    echo "test_errors: $name: LeakSanitizer's tracer crashed at exit; retried once" >&2
+    rc=0
+    "$bin" "$@" >"$out" 2>"$err" </dev/null || rc=$?
+  fi
+  return "$rc"
+}
+
 # expect_error NAME PATTERN... -- ARGS...
 # A PATTERN is a fixed string the single stderr line must contain; "re:REGEX" is an extended regex.
 expect_error() { in_background expect_error_now "$@"; }
@@ -40,7 +58,7 @@ expect_error_now() {
   while [ "$#" -gt 0 ] && [ "$1" != "--" ]; do patterns+=("$1"); shift; done
   shift
   local err="$tmp/err.$name" rc=0
-  "$bin" "$@" >"$tmp/out.$name" 2>"$err" </dev/null || rc=$?
+  run_bin "$name" "$tmp/out.$name" "$err" "$@" || rc=$?
   local lines; lines="$(awk 'END { print NR }' "$err")"  # counts an unterminated last line too
   local msg; msg="$(cat "$err")"
   if [ "$rc" -ge 128 ]; then fail "$name: crashed (status $rc, signal $((rc - 128))): $msg"; return; fi
@@ -62,7 +80,7 @@ expect_error_now() {
 expect_ok() {
   local name="$1"; shift
   local rc=0
-  "$bin" "$@" >"$tmp/out.$name" 2>"$tmp/err.$name" </dev/null || rc=$?
+  run_bin "$name" "$tmp/out.$name" "$tmp/err.$name" "$@" || rc=$?
   [ "$rc" -eq 0 ] || fail "$name: exit status $rc, expected 0: $(cat "$tmp/err.$name")"
   return "$rc"
 }

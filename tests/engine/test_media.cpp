@@ -265,7 +265,7 @@ TEST_CASE("Beer-Lambert: light through an absorbing slab behind a null boundary"
 // the medium (the camera's "medium"), sees the radius instead: rays that start in a medium.
 // Negative controls: the mirrored phase function (−g) or a 10% lower albedo must fail the same
 // comparison.
-TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[media]") {
+TEST_CASE("single scattering in a homogeneous sphere matches quadrature", "[media][expectation]") {
   const double sigma_t = 1.0, albedo = 0.8;
   // The quadrature along a ray parallel to −z at impact parameter b, unit sphere at the origin:
   // from outside, the ray crosses the whole chord; from a camera at the centre (inside: b = 0), it
