@@ -31,22 +31,12 @@ fail() { printf 'FAIL: %s\n' "$*" >>"$tmp/failures"; }
 throttle() { while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do wait -n; done; }
 in_background() { cases=$((cases + 1)); throttle; "$@" & }
 
-# run_bin NAME OUT ERR ARGS...: runs backlight, stdout to OUT and stderr to ERR, and returns its
-# status. Under the sanitizers (tools/check --sanitize) LeakSanitizer's tracer can crash while it
-# suspends the threads at exit ("Tracer caught signal 11", then "LeakSanitizer has encountered a
-# fatal error": a known, intermittent fault of the sanitizer runtime, seen once in 158 cases, after
-# the command had done its work). Only that message is retried, once, and the retry is reported; a
-# real leak report ("detected memory leaks") fails as before.
+# run_bin OUT ERR ARGS...: runs backlight, stdout to OUT and stderr to ERR, stdin from /dev/null,
+# and returns its status.
 run_bin() {
-  local name="$1" out="$2" err="$3" rc=0
-  shift 3
-  "$bin" "$@" >"$out" 2>"$err" </dev/null || rc=$?
-  if grep -q "LeakSanitizer has encountered a fatal error" "$err"; then
-    echo "test_errors: $name: LeakSanitizer's tracer crashed at exit; retried once" >&2
-    rc=0
-    "$bin" "$@" >"$out" 2>"$err" </dev/null || rc=$?
-  fi
-  return "$rc"
+  local out="$1" err="$2"
+  shift 2
+  "$bin" "$@" >"$out" 2>"$err" </dev/null
 }
 
 # expect_error NAME PATTERN... -- ARGS...
@@ -58,7 +48,7 @@ expect_error_now() {
   while [ "$#" -gt 0 ] && [ "$1" != "--" ]; do patterns+=("$1"); shift; done
   shift
   local err="$tmp/err.$name" rc=0
-  run_bin "$name" "$tmp/out.$name" "$err" "$@" || rc=$?
+  run_bin "$tmp/out.$name" "$err" "$@" || rc=$?
   local lines; lines="$(awk 'END { print NR }' "$err")"  # counts an unterminated last line too
   local msg; msg="$(cat "$err")"
   if [ "$rc" -ge 128 ]; then fail "$name: crashed (status $rc, signal $((rc - 128))): $msg"; return; fi
@@ -80,7 +70,7 @@ expect_error_now() {
 expect_ok() {
   local name="$1"; shift
   local rc=0
-  run_bin "$name" "$tmp/out.$name" "$tmp/err.$name" "$@" || rc=$?
+  run_bin "$tmp/out.$name" "$tmp/err.$name" "$@" || rc=$?
   [ "$rc" -eq 0 ] || fail "$name: exit status $rc, expected 0: $(cat "$tmp/err.$name")"
   return "$rc"
 }
@@ -523,7 +513,7 @@ good_grid_files() {
   for f in smoke.density.vdb smoke.density.vol smoke.density.png; do
     [ -s "gdump/$f" ] || fail "params --dump of a grid: no gdump/$f"
   done
-  run_bin tvol "$tmp/out.tvol" "$tmp/err.tvol" render "$vol" --resolution 16x16 --spp 2 --seed 3 -q -o tvol.exr \
+  run_bin "$tmp/out.tvol" "$tmp/err.tvol" render "$vol" --resolution 16x16 --spp 2 --seed 3 -q -o tvol.exr \
     --set smoke.scale=4 || fail "the grid target did not render: $(cat "$tmp/err.tvol")"
   expect_ok grad_grid grad "$vol" --resolution 16x16 --spp 1 --target tvol.exr --param smoke.density --out ggrid -q ||
     return
