@@ -93,7 +93,7 @@ void compare_across_threads(const Scene& scene, const std::vector<std::vector<fl
                 << "): |g| = " << norm << ", |g1 − g2| = " << diff << ", " << differing << " elements differ");
     CHECK(norm > 0);
     // Both kinds: the difference is rounding only, far below 1e-5 of the gradient's norm
-    // (measured on this scene: 0 for small parameters, ~5e-8 relative for atomic ones, where
+    // (measured on the open scene: 0 for small parameters, ~5e-8 relative for atomic ones, where
     // a few dozen of the 384/768 elements differ in their last bits from run to run).
     CHECK(diff <= 1e-5 * norm);
     if (local) {
