@@ -85,15 +85,17 @@ def run_measured(cmd, check=True, env=None):
 
 
 def parse_render_summary(stderr):
-    """Parses 'render: WxH, N spp, T s, X samples/s, Y rays/s' (k/M/G suffixes)."""
-    m = re.search(r"render: (\d+)x(\d+), (\d+) spp, ([0-9.]+) s, ([0-9.]+) ([kMG]?) ?samples/s, ([0-9.]+) ([kMG]?) ?rays/s",
-                  stderr)
+    """Parses 'render: WxH, N spp, T s, X samples/s, Y rays/s (S% shadow, C% camera)' (k/M/G
+    suffixes; the ray mix as fractions of all rays)."""
+    m = re.search(r"render: (\d+)x(\d+), (\d+) spp, ([0-9.]+) s, ([0-9.]+) ([kMG]?) ?samples/s, ([0-9.]+) ([kMG]?) ?rays/s"
+                  r" \(([0-9.]+)% shadow, ([0-9.]+)% camera\)", stderr)
     if not m:
         raise SystemExit("bench: cannot parse the render summary:\n" + stderr[-500:])
     scale = {"": 1, "k": 1e3, "M": 1e6, "G": 1e9}
     return {"width": int(m.group(1)), "height": int(m.group(2)), "spp": int(m.group(3)), "seconds": float(m.group(4)),
             "samples_per_second": float(m.group(5)) * scale[m.group(6)],
-            "rays_per_second": float(m.group(7)) * scale[m.group(8)]}
+            "rays_per_second": float(m.group(7)) * scale[m.group(8)],
+            "shadow_fraction": float(m.group(9)) / 100, "camera_fraction": float(m.group(10)) / 100}
 
 
 def write_json(name, data):

@@ -37,9 +37,9 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
   Image image(cam.width, cam.height, 3);
   Progress progress("render", owned_pixels(cam.width, cam.height) * uint64_t(o.spp), "spp", o.progress);
   progress.set_ranks(dist::size());
-  std::atomic<uint64_t> rays{0};
+  std::atomic<uint64_t> rays{0}, shadow_rays{0}, packet_rays{0};
   for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
-    const uint64_t rays_before = Geometry::thread_ray_count();
+    const Geometry::RayCounts rays_before = Geometry::thread_ray_counts();
     NoObserver none;
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
@@ -57,16 +57,22 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
         const Vec3f mean(sum / double(o.spp));
         for (int c = 0; c < 3; ++c) image.at(x, y, c) = mean[c];
       }
-    rays += Geometry::thread_ray_count() - rays_before;
+    const Geometry::RayCounts cast = Geometry::thread_ray_counts() - rays_before;
+    rays += cast.all;
+    shadow_rays += cast.shadow;
+    packet_rays += cast.packet;
     progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
   });
   progress.finish();
   dist::complete_image(image);
-  const uint64_t all_rays = dist::sum(rays.load());
+  const uint64_t all_rays = dist::sum(rays.load());  // collective: every rank, stats or not
+  const uint64_t all_shadow = dist::sum(shadow_rays.load()), all_packet = dist::sum(packet_rays.load());
   if (stats) {
     stats->seconds = progress.elapsed();
     stats->samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(o.spp);
     stats->rays = all_rays;
+    stats->shadow_rays = all_shadow;
+    stats->packet_rays = all_packet;
   }
   return image;
 }

@@ -22,6 +22,7 @@ struct PassStats {
   double seconds = 0;
   uint64_t samples = 0;
   uint64_t rays = 0;
+  uint64_t shadow_rays = 0, packet_rays = 0;  // of `rays`: shadow rays, camera rays traced in packets
 };
 
 // Primal render: box filter, pixel value = mean of its samples. Bitwise identical for any

@@ -16,9 +16,13 @@ void embree_error(void*, RTCError code, const char* message) {
   std::fprintf(stderr, "backlight: Embree error %d: %s\n", int(code), message ? message : "");
 }
 thread_local uint64_t tls_ray_count = 0;
+thread_local uint64_t tls_shadow_ray_count = 0, tls_packet_ray_count = 0;
 }  // namespace
 
 uint64_t Geometry::thread_ray_count() { return tls_ray_count; }
+Geometry::RayCounts Geometry::thread_ray_counts() {
+  return {tls_ray_count, tls_shadow_ray_count, tls_packet_ray_count};
+}
 
 Geometry::Geometry() {
   device_ = rtcNewDevice("verbose=0");
@@ -110,6 +114,7 @@ void Geometry::intersect_packet(const Ray* rays, int count, Hit* out) const {
   }
   rtcIntersect8(valid, scene_, &context, &rh);
   tls_ray_count += uint64_t(count);
+  tls_packet_ray_count += uint64_t(count);
   for (int i = 0; i < count; ++i) {
     Hit h;
     if (rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID) {
@@ -140,6 +145,7 @@ bool Geometry::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {
   r.time = 0.f;
   rtcOccluded1(scene_, &context, &r);
   ++tls_ray_count;
+  ++tls_shadow_ray_count;
   // Embree sets tfar to -inf when the ray is blocked.
   return r.tfar < 0.f;
 }

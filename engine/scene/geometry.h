@@ -38,6 +38,13 @@ class Geometry {
   void intersect_packet(const Ray* rays, int count, Hit* out) const;
   // Rays (closest-hit and shadow) cast so far by the calling thread; callers take differences.
   static uint64_t thread_ray_count();
+  // The same count by kind: shadow rays (occluded) and closest-hit rays traced in packets (a
+  // pixel's camera rays), the rest being single closest-hit rays. bench/primal casts this mix.
+  struct RayCounts {
+    uint64_t all = 0, shadow = 0, packet = 0;
+    RayCounts operator-(const RayCounts& o) const { return {all - o.all, shadow - o.shadow, packet - o.packet}; }
+  };
+  static RayCounts thread_ray_counts();
 
  private:
   RTCDevice device_ = nullptr;

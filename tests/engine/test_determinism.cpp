@@ -146,6 +146,22 @@ TEST_CASE("primal renders are bitwise identical for 1 and 2 threads", "[determin
   }
 }
 
+TEST_CASE("a render counts its rays by kind, the same on any thread count", "[determinism][stats]") {
+  // The mix bench/primal hands its bare Embree loop: every camera ray goes through a packet (12
+  // spp: a packet of 8 and one of 4 per pixel), shadow rays are counted apart.
+  auto scene = bundled("cornell", 16);
+  PassStats one, two;
+  const Image a = with_threads(1, [&] { return render(*scene, {0, 12, 3, false}, &one); });
+  const Image b = with_threads(2, [&] { return render(*scene, {0, 12, 3, false}, &two); });
+  CHECK(bitwise_equal(a, b));
+  CHECK(one.packet_rays == 16u * 16u * 12u);
+  CHECK(one.shadow_rays > one.packet_rays / 2);         // about one light sample per surface vertex
+  CHECK(one.rays > one.packet_rays + one.shadow_rays);  // and bounce rays
+  CHECK(one.rays == two.rays);
+  CHECK(one.shadow_rays == two.shadow_rays);
+  CHECK(one.packet_rays == two.packet_rays);
+}
+
 TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
   auto scene = open_scene();
   Image target = render(*scene, {0, 16, 99, false});
