@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <bit>
 #include <cmath>
 #include <cstdio>
@@ -527,12 +528,24 @@ Image read_image_unguarded(const std::string& path, bool decode_srgb) {
   }
   const bool srgb = decode_srgb && !img.from_float_file;
   const size_t channels = size_t(img.channels);
+  // 8-bit files hold 256 distinct values: their decoding comes from a table of srgb_to_linear at
+  // exactly those values (the same floats; a 1024² RGB texture took 3 M powf calls).
+  static const std::array<float, 256> srgb_table = [] {
+    std::array<float, 256> t;
+    for (int b = 0; b < 256; ++b) t[size_t(b)] = srgb_to_linear(float(b) / 255.f);
+    return t;
+  }();
   for (size_t i = 0; i < img.data.size(); ++i) {
     float& v = img.data[i];
     if (!std::isfinite(v))
       throw file_error(path, "pixel (" + std::to_string(i / channels % size_t(img.width)) + ", " +
                                  std::to_string(i / channels / size_t(img.width)) + ") is not a finite number");
-    if (srgb) v = srgb_to_linear(v);
+    if (!srgb) continue;
+    const float code = std::round(v * 255.f);
+    if (code >= 0.f && code <= 255.f && float(int(code)) / 255.f == v)
+      v = srgb_table[size_t(code)];
+    else
+      v = srgb_to_linear(v);  // 16-bit PNG and other values
   }
   return img;
 }

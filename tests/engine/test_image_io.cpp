@@ -7,6 +7,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 
@@ -72,6 +73,25 @@ TEST_CASE("every written format reads back", "[image][io]") {
     for (size_t i = 0; i < img.data.size(); ++i) worst = std::max(worst, std::abs(back.data[i] - img.data[i]));
     CHECK(worst <= f.tolerance);
   }
+}
+
+TEST_CASE("8-bit sRGB decoding gives srgb_to_linear of every code, bit for bit", "[image][io]") {
+  // The reader decodes 8-bit files through a table; it must give what the formula gives.
+  TempDir tmp;
+  Image img(256, 1, 3);
+  for (int b = 0; b < 256; ++b)
+    for (int c = 0; c < 3; ++c) img.at(b, 0, c) = srgb_to_linear(float(b) / 255.f);
+  write_image(tmp("codes.png"), img);
+  const Image raw = read_image(tmp("codes.png"), false), decoded = read_image(tmp("codes.png"), true);
+  REQUIRE(raw.width == 256);
+  REQUIRE(decoded.width == 256);
+  for (int b = 0; b < 256; ++b)
+    for (int c = 0; c < 3; ++c) {
+      CAPTURE(b, c);
+      REQUIRE(raw.at(b, 0, c) == float(b) / 255.f);  // the file holds every code once
+      const float expected = srgb_to_linear(float(b) / 255.f), got = decoded.at(b, 0, c);
+      CHECK(std::memcmp(&expected, &got, sizeof(float)) == 0);
+    }
 }
 
 TEST_CASE("the reader follows the file's bytes, not its name", "[image][io]") {
