@@ -88,6 +88,11 @@ Hit Geometry::intersect(const Ray& ray) const {
   return h;
 }
 
+Hit Geometry::intersect_shadow(const Ray& ray) const {
+  ++tls_shadow_ray_count;
+  return intersect(ray);
+}
+
 void Geometry::intersect_packet(const Ray* rays, int count, Hit* out) const {
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);

@@ -29,6 +29,8 @@ class Geometry {
   // outlive the geometry and keep one float of padding after the last vertex, see Mesh).
   void build(const std::vector<Mesh>& meshes);
   Hit intersect(const Ray& ray) const;
+  // intersect() for a piece of a shadow ray (a walk across null surfaces): counted as a shadow ray.
+  Hit intersect_shadow(const Ray& ray) const;
   bool occluded(const Vec3f& origin, const Vec3f& direction, float tmax) const;
   // Up to kPacket coherent rays (e.g. one pixel's camera rays) traced together through Embree's
   // packet traversal, in less time than one by one. out[i] is what intersect(rays[i]) returns,
@@ -38,8 +40,9 @@ class Geometry {
   void intersect_packet(const Ray* rays, int count, Hit* out) const;
   // Rays (closest-hit and shadow) cast so far by the calling thread; callers take differences.
   static uint64_t thread_ray_count();
-  // The same count by kind: shadow rays (occluded) and closest-hit rays traced in packets (a
-  // pixel's camera rays), the rest being single closest-hit rays. bench/primal casts this mix.
+  // The same count by kind: shadow rays (occlusion queries and the pieces of shadow walks) and
+  // closest-hit rays traced in packets (a pixel's camera rays), the rest being single closest-hit
+  // rays. bench/primal casts this mix.
   struct RayCounts {
     uint64_t all = 0, shadow = 0, packet = 0;
     RayCounts operator-(const RayCounts& o) const { return {all - o.all, shadow - o.shadow, packet - o.packet}; }

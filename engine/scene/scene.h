@@ -187,7 +187,7 @@ bool walk_shadow_segment(const Scene& scene, Vec3f o, const Vec3f& d, float tmax
                          OnPiece&& on_piece) {
   const bool intersect = find_blockers || scene.has_null_surfaces;
   for (int k = 0; k <= kMaxNullCrossings; ++k) {
-    const Hit hit = intersect ? scene.geometry->intersect(Ray{o, d, 0.f, tmax}) : Hit{};
+    const Hit hit = intersect ? scene.geometry->intersect_shadow(Ray{o, d, 0.f, tmax}) : Hit{};
     if (hit.mesh >= 0 && !scene.materials[size_t(scene.meshes[size_t(hit.mesh)].material)].is_null) return true;
     if (medium >= 0 && !on_piece(medium, o, hit.mesh < 0 ? tmax : hit.t)) return false;
     if (hit.mesh < 0) return false;

@@ -160,6 +160,14 @@ TEST_CASE("a render counts its rays by kind, the same on any thread count", "[de
   CHECK(one.rays == two.rays);
   CHECK(one.shadow_rays == two.shadow_rays);
   CHECK(one.packet_rays == two.packet_rays);
+  // Through media, shadow rays walk across null surfaces with closest-hit queries: counted as
+  // shadow rays all the same.
+  auto volume = bundled("mitsuba-volume", 16);
+  PassStats media;
+  render(*volume, {0, 4, 3, false}, &media);
+  CHECK(media.packet_rays == 16u * 16u * 4u);
+  CHECK(media.shadow_rays > media.packet_rays / 4);
+  CHECK(media.rays > media.packet_rays + media.shadow_rays);
 }
 
 TEST_CASE("prb gradients across thread counts", "[determinism][gradient]") {
