@@ -105,8 +105,8 @@ struct ReplayObserver {
                                             grads);
     pending_real.medium = nullptr;
   }
-  bool light_derivatives(const Medium& m, const ParamStore&) const {
-    return m.light_derivatives > 0.f && m.wants_sigma_grad(grads);
+  bool light_derivatives(const Medium& m, const ParamStore& params) const {
+    return m.light_derivatives > 0.f && m.wants_sigma_grad(params);
   }
   void flight_light(const Medium& m, const Vec3f& x, const Vec3f& weighted) {
     const float w = dot(delta, weighted);
@@ -114,7 +114,7 @@ struct ReplayObserver {
   }
   void flight_collision(const Medium& m, const Vec3f& x, float sigma, float majorant, bool real,
                         const Vec3f& radiance_so_far) {
-    if (!m.wants_sigma_grad(grads)) return;
+    if (!m.wants_sigma_grad(scene.params)) return;
     const float rest = dot(delta, total_radiance - radiance_so_far);
     if (real && light_derivatives(m, scene.params) && m.light_derivative_at(sigma, majorant)) {
       pending_real = {&m, x, sigma, rest};

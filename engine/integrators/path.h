@@ -319,7 +319,7 @@ inline void shadow_transmittance_backprop(const Scene& scene, const std::vector<
                                           GradientAccumulator& grads) {
   if (weight == 0.f) return;
   for (const ShadowPoint& p : points)
-    if (p.medium->wants_sigma_grad(grads) && p.majorant > p.sigma)
+    if (p.medium->wants_sigma_grad(scene.params) && p.majorant > p.sigma)
       p.medium->backprop_sigma_t(scene.params, p.x, -weight / (p.majorant - p.sigma), grads);
 }
 

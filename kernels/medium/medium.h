@@ -112,7 +112,7 @@ struct Medium {
   }
 
   // Derivative shaders: adjoint · ∂(quantity at x)/∂θ into every parameter the value read.
-  bool wants_sigma_grad(const GradientAccumulator& grads) const { return grads.wants(density) || grads.wants(scale); }
+  // Whether σ_t reads a parameter that wants a gradient (the density or the scale).
   bool wants_sigma_grad(const ParamStore& params) const {
     return (density >= 0 && params[density].requires_grad) || (scale >= 0 && params[scale].requires_grad);
   }
