@@ -52,6 +52,10 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
+  if (total == 0) {
+    std::fprintf(stderr, "bench_rays: RAYS must be a positive count\n");
+    return 2;
+  }
   if (camera_fraction < 0) camera_fraction = (1.0 - shadow_fraction) / 6.0;
   if (!(shadow_fraction >= 0 && camera_fraction >= 0 && shadow_fraction + camera_fraction <= 1)) {
     std::fprintf(stderr, "bench_rays: the shadow and camera fractions must be in [0, 1] with a sum of at most 1\n");
@@ -90,10 +94,8 @@ int main(int argc, char** argv) {
     const uint64_t pool_size = std::min<uint64_t>(total, 1u << 20);
     std::vector<PoolCast> pool(pool_size);
     std::vector<PoolPacket> packets;
-    std::vector<uint8_t> is_packet(pool_size);
-    for (uint64_t i = 0; i < pool_size; ++i) is_packet[i] = PathSampler(7, i, 0).get(0) < float(packet_probability);
     for (uint64_t i = 0; i < pool_size; ++i)
-      if (is_packet[i]) {
+      if (PathSampler(7, i, 0).get(0) < float(packet_probability)) {
         pool[i].kind = PoolCast::Camera;
         pool[i].packet = uint32_t(packets.size());
         packets.emplace_back();
@@ -149,7 +151,7 @@ int main(int argc, char** argv) {
     const uint64_t rest_casts =
         uint64_t(std::lower_bound(rays_before.begin(), rays_before.end(), rest) - rays_before.begin());
     const uint64_t casts = passes * pool_size + rest_casts;
-    uint64_t cast_rays = passes * pool_rays + rays_before[rest_casts];
+    const uint64_t cast_rays = passes * pool_rays + rays_before[rest_casts];
     std::atomic<uint64_t> hits{0};
     const uint64_t chunk = 4096, chunks = (casts + chunk - 1) / chunk;
     auto t0 = std::chrono::steady_clock::now();
