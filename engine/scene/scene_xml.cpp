@@ -35,6 +35,7 @@ constexpr int kXmlDepth = 64;  // nesting of XML elements
 class XmlScene {
  public:
   XmlScene(std::string path, std::string text) : path_(std::move(path)), text_(std::move(text)) {}
+  const std::vector<std::string>& warnings() const { return warnings_; }
 
   json translate() {
     pugi::xml_document doc;
@@ -104,6 +105,7 @@ class XmlScene {
   std::map<std::string, std::string> material_of_id_;
   std::map<std::string, std::string> medium_of_id_;
   std::set<std::string> warned_;
+  std::vector<std::string> warnings_;  // printed once the scene has loaded (see load_xml_scene)
   json root_;
   int anonymous_ = 0;
 
@@ -125,8 +127,9 @@ class XmlScene {
   }
   void warn(const pugi::xml_node& n, const std::string& key, const std::string& msg) {
     if (!warned_.insert(key).second) return;
-    std::fprintf(stderr, "backlight: %s: warning: %s: %s\n", path_.c_str(), where(n).c_str(), msg.c_str());
+    warnings_.push_back("backlight: " + path_ + ": warning: " + where(n) + ": " + msg);
   }
+
   void check_depth() const {
     int depth = 0;
     bool in_tag = false;
@@ -388,6 +391,8 @@ class XmlScene {
     Props p = props(n);
     json m;
     if (type == "twosided") {
+      // (Also what ends a cycle of references: twosided → … → itself.)
+      if (two_sided) fail(n, "a twosided bsdf inside a twosided bsdf");
       pugi::xml_node inner;
       for (const pugi::xml_node& o : p.objects)
         if (tag(resolve(o)) == "bsdf") {
@@ -806,7 +811,10 @@ class XmlScene {
 
 std::unique_ptr<Scene> load_xml_scene(const std::string& path) {
   XmlScene xml(path, read_input_file(path));
-  return build_json_scene(xml.translate(), path);
+  std::unique_ptr<Scene> scene = build_json_scene(xml.translate(), path);
+  // A scene that fails to load gets its one error line only; one that loads, its warnings.
+  for (const std::string& w : xml.warnings()) std::fprintf(stderr, "%s\n", w.c_str());
+  return scene;
 }
 
 }  // namespace bl

@@ -191,6 +191,16 @@ printf 'SIMPLE  =                    T' >small/fits.png
 expect_error texture_unknown_format "fits.png" "unsupported image format" -- \
   render "$(v texfits 's["materials"]["wall"]["albedo"]["file"] = "fits.png"')" -o o.exr
 
+# Mitsuba XML. A scene that warns and then fails prints its error alone (warnings are printed
+# once the scene has loaded); references that lead back to themselves are errors, not a stack
+# overflow.
+xml_sensor='<sensor type="perspective"><float name="fov" value="40"/><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>'
+printf '<scene version="3.0.0">\n%s\n<bsdf type="conductor" id="g"/>\n<shape type="disk"/>\n</scene>\n' "$xml_sensor" >warn_then_fail.xml
+expect_error xml_warning_then_error "warn_then_fail.xml" "line 4" "unsupported shape type" -- \
+  render warn_then_fail.xml -o o.exr -q
+printf '<scene version="3.0.0">\n%s\n<bsdf type="twosided" id="a"><ref id="b"/></bsdf>\n<bsdf type="twosided" id="b"><ref id="a"/></bsdf>\n</scene>\n' "$xml_sensor" >ref_cycle.xml
+expect_error xml_reference_cycle "ref_cycle.xml" "twosided bsdf inside a twosided bsdf" -- params ref_cycle.xml
+
 # glTF.
 head -c 1000 /dev/urandom >garbage.gltf
 expect_error gltf_garbage "garbage.gltf" "invalid glTF" -- render garbage.gltf -o o.exr --resolution 8x8 --spp 1

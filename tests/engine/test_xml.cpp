@@ -331,8 +331,23 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
                 "<rotate x=\"1\" angle=\"abc\"/></transform></shape>\n",
        "'abc' is not a finite number"},
       {sensor + shape + "<shape", "malformed XML"},
+      // References that lead back (a stack overflow before) or nest twosided in twosided.
+      {sensor + shape + "<bsdf type=\"twosided\" id=\"a\"><ref id=\"a\"/></bsdf>\n",
+       "line 4: <bsdf type=\"twosided\">: a twosided bsdf inside a twosided bsdf"},
+      {sensor + shape +
+           "<bsdf type=\"twosided\" id=\"a\"><ref id=\"b\"/></bsdf>\n"
+           "<bsdf type=\"twosided\" id=\"b\"><ref id=\"a\"/></bsdf>\n",
+       "a twosided bsdf inside a twosided bsdf"},
   };
   check_errors(dir, cases);
+  {  // a chain of 30,000 twosided references: one error at once, not a stack overflow
+    std::string chain = sensor + shape;
+    for (int i = 0; i < 30000; ++i)
+      chain += "<bsdf type=\"twosided\" id=\"b" + std::to_string(i) + "\"><ref id=\"b" + std::to_string(i + 1) +
+               "\"/></bsdf>\n";
+    chain += "<bsdf type=\"diffuse\" id=\"b30000\"/>\n";
+    check_errors(dir, {{chain, "line 5: <bsdf type=\"twosided\">: a twosided bsdf inside a twosided bsdf"}});
+  }
   // A harmless attribute is one warning, not an error; defaults substitute.
   const std::string ok = write(dir, "ok.xml",
                                "<scene version=\"3.0.0\"><default name=\"w\" value=\"8\"/>"
