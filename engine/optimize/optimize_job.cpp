@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <bit>
 #include <chrono>
 #include <cmath>
 #include <csignal>
@@ -23,6 +24,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <type_traits>
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
@@ -1302,10 +1304,43 @@ class Job {
     if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json"))
       dir = out("checkpoint.old");
     if (!fs::exists(dir + "/state.json")) throw file_error(c_.output, "--resume: no checkpoint in this directory");
-    std::ifstream f(dir + "/state.json");
-    std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
-    json state = parse_json_text(text, dir + "/state.json");
+    const std::string state_path = dir + "/state.json";
+    json state = parse_json_text(read_input_file(state_path), state_path);
+    // A checkpoint is input like any other: every number is checked before the run continues
+    // from it (a huge next_iteration ran for ever, a NaN moment made every later value NaN).
+    auto bad = [&](const std::string& what) { throw file_error(state_path, what); };
+    auto integer = [&](const json& j, const std::string& name, int64_t lo, int64_t hi) {
+      const bool in_range = j.is_number_unsigned()  ? j.get<uint64_t>() <= uint64_t(hi) && lo <= 0
+                            : j.is_number_integer() ? j.get<int64_t>() >= lo && j.get<int64_t>() <= hi
+                                                    : false;
+      if (!j.is_number_integer()) bad(name + " is not an integer");
+      if (!in_range) bad(name + " is outside " + std::to_string(lo) + ".." + std::to_string(hi));
+      return int(j.get<int64_t>());
+    };
+    auto number = [&](const json& j, const std::string& name, double lo) {
+      if (!j.is_number()) bad(name + " is not a number");
+      const double v = j.get<double>();
+      if (!std::isfinite(v) || v < lo) bad(name + " is not a finite number >= " + std::to_string(lo));
+      return v;
+    };
+    // Adam's moments: finite, the second one not negative (bfloat16 patterns are a float's high bits).
+    auto check_moments = [&](const std::string& name, const auto& m, const auto& v) {
+      auto as_float = [](auto x) {
+        if constexpr (std::is_same_v<std::decay_t<decltype(x)>, uint16_t>)
+          return std::bit_cast<float>(uint32_t(x) << 16);
+        else
+          return float(x);
+      };
+      for (size_t i = 0; i < m.size(); ++i)
+        if (!std::isfinite(as_float(m[i])))
+          throw file_error(dir + "/" + name + ".adam_m", "element " + std::to_string(i) + " is NaN or infinite");
+      for (size_t i = 0; i < v.size(); ++i)
+        if (!(as_float(v[i]) >= 0.f) || !std::isfinite(as_float(v[i])))
+          throw file_error(dir + "/" + name + ".adam_v",
+                           "element " + std::to_string(i) + " is not a finite number >= 0");
+    };
     try {
+      const int next_iteration = integer(state.at("next_iteration"), "next_iteration", 0, c_.iterations);
       for (auto& p : c_.params) {
         const json& s = state.at("parameters").at(p.name);
         Param& param = scene_->params[p.handle];
@@ -1313,6 +1348,7 @@ class Job {
         size_t size = 1;
         for (int d : param.shape) size *= size_t(d);
         param.value = read_floats(dir + "/" + p.name + ".value", size);
+        validate_param(param, dir + "/" + p.name + ".value");
         param.grad.assign(size, 0.f);
         const bool half = p.adam.settings().bf16_moments;
         if (s.value("moments", std::string("float32")) != (half ? "bfloat16" : "float32"))
@@ -1321,27 +1357,48 @@ class Job {
         if (half) {
           p.adam.m16 = read_floats<uint16_t>(dir + "/" + p.name + ".adam_m", size);
           p.adam.v16 = read_floats<uint16_t>(dir + "/" + p.name + ".adam_v", size);
+          check_moments(p.name, p.adam.m16, p.adam.v16);
         } else {
           p.adam.m = read_floats(dir + "/" + p.name + ".adam_m", size);
           p.adam.v = read_floats(dir + "/" + p.name + ".adam_v", size);
+          check_moments(p.name, p.adam.m, p.adam.v);
         }
-        p.adam.set_state(s.at("adam_t").get<int>(), s.at("adam_decay_t").get<int>());
-        p.average_count = s.value("average_count", 0);
-        if (p.average_count < 0) throw file_error(dir + "/state.json", "negative average_count of '" + p.name + "'");
+        // Steps since the last moment reset ≤ steps overall ≤ iterations done.
+        const int decay_t = integer(s.at("adam_decay_t"), p.name + " adam_decay_t", 0, next_iteration);
+        p.adam.set_state(integer(s.at("adam_t"), p.name + " adam_t", 0, decay_t), decay_t);
+        p.average_count = s.contains("average_count")
+                              ? integer(s.at("average_count"), p.name + " average_count", 0, next_iteration)
+                              : 0;
         p.average.clear();
-        if (p.average_count > 0) p.average = read_floats(dir + "/" + p.name + ".average", size);
+        if (p.average_count > 0) {
+          p.average = read_floats(dir + "/" + p.name + ".average", size);
+          Param average = param;
+          average.value = p.average;
+          validate_param(average, dir + "/" + p.name + ".average");
+        }
       }
-      for (const auto& r : state.at("log"))
-        log_.push_back({r[0].get<int>(), r[1].get<double>(), r[2].get<double>(), r[3].get<double>()});
+      const auto row = [&](const json& r, size_t n, const std::string& name) -> const json& {
+        if (!r.is_array() || r.size() != n) bad(name + " rows must be arrays of " + std::to_string(n) + " numbers");
+        return r;
+      };
+      for (const auto& r : state.at("log")) {
+        row(r, 4, "log");
+        // (rmse is −1 without a ground truth)
+        log_.push_back({integer(r[0], "log iteration", 0, next_iteration), number(r[1], "log loss", 0.0),
+                        number(r[2], "log seconds", 0.0), number(r[3], "log rmse", -1.0)});
+      }
       if (state.contains("validation"))  // checkpoints from before validation losses have none
-        for (const auto& r : state.at("validation"))
-          validation_.push_back({r.at(0).get<int>(), r.at(1).get<double>(), r.at(2).get<double>()});
-      elapsed_before_ = state.at("seconds").get<double>();
-      initial_loss_ = state.at("initial_loss").get<double>();
-      if (state.contains("initial_rmse") && state.at("initial_rmse").is_number())
-        initial_rmse_ = state.at("initial_rmse").get<double>();
+        for (const auto& r : state.at("validation")) {
+          row(r, 3, "validation");
+          validation_.push_back({integer(r[0], "validation iteration", 0, next_iteration),
+                                 number(r[1], "validation loss", 0.0), number(r[2], "validation seconds", 0.0)});
+        }
+      elapsed_before_ = number(state.at("seconds"), "seconds", 0.0);
+      initial_loss_ = number(state.at("initial_loss"), "initial_loss", -1.0);  // −1: not measured yet
+      if (state.contains("initial_rmse") && !state.at("initial_rmse").is_null())
+        initial_rmse_ = number(state.at("initial_rmse"), "initial_rmse", -1.0);
       scene_->prepare_sampling();
-      return state.at("next_iteration").get<int>();
+      return next_iteration;
     } catch (const json::exception& e) {
       throw file_error(dir + "/state.json", std::string("checkpoint does not match this config (") + e.what() + ")");
     }

@@ -389,6 +389,56 @@ expect_error memory_budget_huge "--memory-budget" "exceeds the limit of" -- \
   grad "$small" --spp 1 --target t16.exr --method taped --memory-budget 1e300GB --out g_err11 -q
 
 # ---------------------------------------------------------------------------------------------
+# Corrupt checkpoints: --resume checks every number of state.json and every value and moment
+# file (a huge next_iteration ran for ever writing snapshots; NaN values or moments, a negative
+# second moment or a negative adam_t made every later loss and value NaN and exited 0).
+cat >small/opt.json <<'JSON'
+{"scene": "scene.json", "output": "opt_base", "parameters": {"wall.albedo": {"lr": 0.05, "bounds": [0, 1], "init": 0.5}},
+ "views": {"cameras": ["main"], "reference": {"set": {"wall.albedo": "wall.png"}, "spp": 1}}, "resolution": [8, 8], "spp": 1, "iterations": 4,
+ "checkpoint_every": 2, "snapshot_every": 100, "rmse_resolution": [8, 8]}
+JSON
+if run_bin out.opt_base err.opt_base optimize small/opt.json -q && [ -f small/opt_base/checkpoint/state.json ]; then
+  # corrupt NAME PYTHON: a copy of the finished run with PYTHON applied (d: its checkpoint folder,
+  # s: state.json as a dict, written back unless the statement deletes it).
+  corrupt() {
+    rm -rf "small/opt_$1" && cp -r small/opt_base "small/opt_$1"
+    python3 - "small/opt_$1/checkpoint" "$2" <<'PY'
+import json, os, struct, sys
+d = sys.argv[1]; s = json.load(open(d + "/state.json"))
+def put(name, values): open(d + "/" + name, "wb").write(struct.pack("<%df" % len(values), *values))
+def size(name): return os.path.getsize(d + "/" + name) // 4
+exec(sys.argv[2])
+if os.path.isfile(d + "/state.json"): json.dump(s, open(d + "/state.json", "w"))
+PY
+  }
+  resume_error() {  # resume_error NAME PYTHON PATTERN...
+    local name="$1" stmt="$2"; shift 2
+    corrupt "$name" "$stmt"
+    expect_error "resume_$name" "$@" -- optimize small/opt.json --resume "small/opt_$name" -q
+  }
+  resume_error next_huge 's["next_iteration"] = 10**15' "state.json" "next_iteration" "outside 0..4"
+  resume_error next_negative 's["next_iteration"] = -5' "state.json" "next_iteration"
+  resume_error next_float 's["next_iteration"] = 2.5' "state.json" "next_iteration" "not an integer"
+  resume_error adam_t_negative 's["parameters"]["wall.albedo"]["adam_t"] = -1' "state.json" "adam_t"
+  resume_error adam_t_huge 's["parameters"]["wall.albedo"]["adam_t"] = 10**30' "state.json" "adam_t"
+  resume_error seconds_negative 's["seconds"] = -100' "state.json" "seconds"
+  resume_error log_row 's["log"][0] = [1, 2]' "state.json" "log"
+  resume_error value_nan 'put("wall.albedo.value", [float("nan")] * size("wall.albedo.value"))' \
+    "wall.albedo.value" "wall.albedo" "re:NaN|finite"
+  resume_error value_range 'put("wall.albedo.value", [-3.0] * size("wall.albedo.value"))' \
+    "wall.albedo.value" "wall.albedo"
+  resume_error adam_v_negative 'put("wall.albedo.adam_v", [-1.0] * size("wall.albedo.adam_v"))' \
+    "wall.albedo.adam_v" "element 0"
+  resume_error adam_m_inf 'put("wall.albedo.adam_m", [float("inf")] * size("wall.albedo.adam_m"))' \
+    "wall.albedo.adam_m" "element 0"
+  resume_error state_fifo 'os.remove(d + "/state.json"); os.mkfifo(d + "/state.json")' "state.json" "not a regular file"
+  resume_error state_directory 'os.remove(d + "/state.json"); os.mkdir(d + "/state.json")' "state.json" \
+    "not a regular file"
+else
+  fail "fixture: optimize small/opt.json: $(cat err.opt_base)"
+fi
+
+# ---------------------------------------------------------------------------------------------
 # Help.
 good_help() {
   expect_ok help --help || return
