@@ -13,6 +13,7 @@
 #include <cmath>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <utility>
@@ -34,7 +35,21 @@ namespace {
 struct PyScene {
   std::unique_ptr<Scene> scene;
   std::string path;
+  // One pass at a time: a pass resizes the camera's film and rebuilds sampling data, so two
+  // Python threads passing the same scene would corrupt each other's pass (they crashed).
+  std::mutex busy;
 };
+
+// Holds the scene's `busy` lock for one pass; waits for it without the GIL (the thread holding
+// it needs the GIL to finish).
+std::unique_lock<std::mutex> lock_for_pass(PyScene& s) {
+  std::unique_lock<std::mutex> lock(s.busy, std::defer_lock);
+  if (!lock.try_lock()) {
+    py::gil_scoped_release release;
+    lock.lock();
+  }
+  return lock;
+}
 
 std::vector<py::ssize_t> shape_of(const Param& p) { return {p.shape.begin(), p.shape.end()}; }
 
@@ -185,6 +200,7 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
 }
 
 py::array_t<float> render_py(PyScene& s, const PassArgs& a) {
+  const auto lock = lock_for_pass(s);
   refresh(s);
   CameraScope scope(*s.scene, a);
   const PassOptions o = pass_options(*s.scene, a);
@@ -237,6 +253,7 @@ GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* wh
 
 py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& method, const PassArgs& a,
                      std::optional<uint64_t> adjoint_seed, const std::optional<std::vector<std::string>>& params) {
+  const auto lock = lock_for_pass(s);
   gradient_pass(s, d_image, "d_image", nullptr, method, a, adjoint_seed, params);
   return gradients_of(*s.scene);
 }
@@ -244,6 +261,7 @@ py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& m
 py::tuple grad_py(PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,
                   const PassArgs& a, std::optional<uint64_t> adjoint_seed,
                   const std::optional<std::vector<std::string>>& params) {
+  const auto lock = lock_for_pass(s);
   GradientResult r = gradient_pass(s, target, "target", &loss, method, a, adjoint_seed, params);
   return py::make_tuple(r.loss, gradients_of(*s.scene), image_array(std::move(r.image)));
 }
@@ -287,7 +305,8 @@ PYBIND11_MODULE(_backlight, m) {
           "Shape and valid range of every parameter")
       .def_property_readonly(
           "cameras",
-          [](const PyScene& s) {
+          [](PyScene& s) {
+            const auto lock = lock_for_pass(s);  // not a pass's temporary film size
             py::list out;
             for (const Camera& c : s.scene->cameras) out.append(py::make_tuple(c.width, c.height));
             return out;

@@ -210,6 +210,10 @@ bool Scene::update_geometry() {
     const Rotation R = rotation_of(r);
     const Vec3d pivot(pose.pivot);
     const std::vector<float>* p0 = pose.positions >= 0 ? &params[pose.positions].value : nullptr;
+    // From here the mesh changes: until the new pose is complete it matches no values (a step
+    // that fails below leaves it to be posed again, whatever values come next).
+    pose.applied.clear();
+    geometry_pending = true;
     if (p0 && !pose.loaded_normals.empty()) {
       const std::vector<Vec3d> groups = group_area_normals(pose, m, *p0);
       for (size_t v = 0; v < m.vertex_count(); ++v) {
@@ -246,6 +250,7 @@ bool Scene::update_geometry() {
       if (!std::isfinite(v)) throw InputError(source + ": camera '" + cam.name + "': its pose is not finite");
     const Vec3d origin = pose.origin >= 0 ? vec_of(params[pose.origin]) : Vec3d(pose.rest.origin);
     const Rotation R = rotation_of(pose.rotate >= 0 ? vec_of(params[pose.rotate]) : Vec3d(0.0));
+    geometry_pending = true;
     cam.origin = Vec3f(origin);
     cam.target = Vec3f(origin + R.apply(Vec3d(pose.rest.target - pose.rest.origin)));
     cam.up = Vec3f(R.apply(Vec3d(pose.rest.up)));

@@ -72,10 +72,11 @@ void Scene::prepare_geometry() {
   geometry->build(meshes);
   has_null_surfaces = false;
   for (const auto& m : meshes) has_null_surfaces |= materials[size_t(m.material)].is_null;
+  geometry_pending = false;
 }
 
 void Scene::prepare_sampling() {
-  if (update_geometry()) prepare_geometry();
+  if (update_geometry() || geometry_pending) prepare_geometry();
   prepare_sampling_only();
 }
 

@@ -129,6 +129,9 @@ struct Scene {
   bool has_null_surfaces = false;        // derived by prepare()
   std::vector<MeshPose> mesh_poses;      // per mesh, after add_geometry_params()
   std::vector<CameraPose> camera_poses;  // per camera
+  // Set when update_geometry re-posed something and cleared once prepare_geometry has rebuilt
+  // what depends on it: a step that failed after moving another mesh still gets its rebuild.
+  bool geometry_pending = false;
 
   // Builds derived data: BVH, emitter sampling tables, environment distribution. Call after
   // loading and whenever parameter values changed that sampling depends on.

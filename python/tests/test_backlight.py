@@ -168,3 +168,46 @@ def test_bad_values_written_through_views_are_refused_by_name(scene):
         backlight.render(scene, spp=1, resolution=RES)
     scene.params["wall.albedo"][3, 4, 1] = 0.5
     backlight.render(scene, spp=1, resolution=RES)
+
+
+def test_passes_on_one_scene_from_two_threads_take_turns(scene):
+    # A pass resizes the camera's film and rebuilds sampling data: two threads passing one scene
+    # used to crash or return images of the other's size. They now wait for each other.
+    expected = {res: backlight.render(scene, spp=1, seed=3, resolution=res) for res in [(8, 6), (12, 4)]}
+    d_image = np.ones((6, 8, 3), np.float32)
+    gradient = backlight.backward(scene, d_image, spp=1, seed=3, resolution=(8, 6), params=["light.radiance"])
+    errors = []
+
+    def work(res, rounds):
+        try:
+            for _ in range(rounds):
+                image = backlight.render(scene, spp=1, seed=3, resolution=res)
+                if not np.array_equal(image, expected[res]):
+                    errors.append(f"render at {res} differs")
+                if res == (8, 6):
+                    g = backlight.backward(scene, d_image, spp=1, seed=3, resolution=res, params=["light.radiance"])
+                    if not np.array_equal(g["light.radiance"], gradient["light.radiance"]):
+                        errors.append("backward differs")
+        except Exception as e:  # noqa: BLE001 (reported below)
+            errors.append(repr(e))
+
+    threads = [threading.Thread(target=work, args=(res, 60)) for res in [(8, 6), (12, 4)]]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert scene.cameras[0] == tuple(int(v) for v in backlight.load(CORNELL).cameras[0])
+
+
+def test_values_put_back_after_a_failed_geometry_step_render_as_before(scene):
+    # The failed step left the light's vertices where it put them; the restored values matched the
+    # recorded pose, so nothing re-posed and light samples came from the collapsed triangles.
+    before = backlight.render(scene, spp=4, seed=1, resolution=RES)
+    positions = scene.params["light.positions"]
+    loaded = positions.copy()
+    positions[:] = 0
+    with pytest.raises(backlight.Error, match="degenerate"):
+        backlight.render(scene, spp=4, seed=1, resolution=RES)
+    positions[:] = loaded
+    assert np.array_equal(backlight.render(scene, spp=4, seed=1, resolution=RES), before)

@@ -5,6 +5,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstring>
 #include <map>
 #include <random>
 
@@ -150,12 +151,43 @@ TEST_CASE("geometry parameters are listed, posed and validated", "[geometry]") {
   const Hit hit = scene->geometry->intersect(Ray{Vec3f(0, 0.2f, 3), Vec3f(0, 0, -1)});
   CHECK(hit.mesh == 1);
   // A triangle a step makes degenerate is an error naming the shape and the triangle.
-  std::vector<float> flat = scene->params[positions].value;
+  const std::vector<float> good = scene->params[positions].value;
+  const Image before = render(*scene, {0, 2, 7, false});
+  const std::vector<Vec3f> posed = scene->meshes[1].positions;
+  auto same_vertices = [&] {
+    for (size_t v = 0; v < posed.size(); ++v)
+      if (std::memcmp(&posed[v], &scene->meshes[1].positions[v], sizeof(Vec3f)) != 0) return false;
+    return true;
+  };
+  std::vector<float> flat = good;
   for (size_t v = 0; v < flat.size(); v += 3) flat[v + 1] = 0.2f;  // every vertex at one height
   scene->params[positions].value = flat;
   CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("box") && Catch::Contains("degenerate"));
   scene->params[positions].value[0] = std::nanf("");
   CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("box") && Catch::Contains("not finite"));
+  // Values put back after a failed step render as before it. The failed step used to leave the
+  // box's vertices where it put them (the restored values matched the recorded pose: nothing
+  // re-posed).
+  scene->params[positions].value = good;
+  scene->prepare_sampling();
+  CHECK(same_vertices());
+  CHECK(render(*scene, {0, 2, 7, false}).data == before.data);
+  // A step that moved another mesh first (the floor is mesh 0, the box mesh 1) and then failed:
+  // with the box fixed, the scene renders as if the floor had moved alone (its vertices moved,
+  // its BVH was not rebuilt).
+  const int floor = scene->params.find("floor.translate");
+  scene->params[floor].value = {0.f, -0.05f, 0.1f};
+  scene->params[positions].value = flat;
+  CHECK_THROWS_WITH(scene->prepare_sampling(), Catch::Contains("degenerate"));
+  scene->params[positions].value = good;
+  scene->prepare_sampling();
+  const Image recovered = render(*scene, {0, 2, 7, false});
+  CHECK(recovered.data != before.data);
+  scene->params[floor].value = {0.f, 0.f, 0.f};
+  scene->prepare_sampling();
+  scene->params[floor].value = {0.f, -0.05f, 0.1f};
+  scene->prepare_sampling();
+  CHECK(render(*scene, {0, 2, 7, false}).data == recovered.data);
 }
 
 // [expectation]: not under the sanitizers; the prb == taped case runs compute_gradient on the same
