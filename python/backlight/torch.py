@@ -12,26 +12,54 @@ values again (the scene may have been rendered with others in between), transpor
 back through the scene (path replay by default) and returns one gradient per tensor. By default
 the adjoint pass uses the forward's seed, so the gradient is the exact derivative of the image
 forward returned; pass adjoint_seed to decorrelate them (unbiased for losses that are not linear
-in the image, as Mitsuba 3 recommends for optimization).
+in the image, as Mitsuba 3 recommends for optimization). The scene's other parameters must keep
+their values from forward to backward (backward checks their checksums and raises if one
+changed); double backward raises.
 """
+import zlib
+
 import numpy as np
 import torch
 
 from . import _backlight
 
+_METHODS = ("prb", "rb", "taped")
 
-def _write(scene, names, tensors):
-    views = scene.params
+
+def _check(scene, names, tensors):
+    """Checks every tensor (a floating-point torch tensor of its parameter's shape, finite, in the
+    parameter's valid range) before any is written: a failed call leaves the scene as it was."""
+    views, info = scene.params, scene.param_info
+    values = []
     for name, tensor in zip(names, tensors):
         if name not in views:
             raise _backlight.Error(f"unknown parameter '{name}' (see scene.params)")
+        if not isinstance(tensor, torch.Tensor):
+            raise _backlight.Error(f"{name}: expected a torch.Tensor, got {type(tensor).__name__}")
+        if not tensor.is_floating_point():
+            raise _backlight.Error(f"{name}: expected a floating-point tensor, got {tensor.dtype}")
         value = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
-        view = views[name]
-        if value.shape != view.shape:
-            raise _backlight.Error(f"{name}: expected shape {tuple(view.shape)}, got {tuple(value.shape)}")
+        if value.shape != views[name].shape:
+            raise _backlight.Error(f"{name}: expected shape {tuple(views[name].shape)}, got {tuple(value.shape)}")
         if not np.all(np.isfinite(value)):
             raise _backlight.Error(f"{name}: the tensor holds NaN or infinite values")
-        view[...] = value
+        lower, upper = info[name]["lower"], info[name]["upper"]
+        if value.size and (value.min() < lower or value.max() > upper):
+            raise _backlight.Error(f"{name}: values outside its valid range [{lower:g}, {upper:g}] "
+                                   f"(min {value.min():g}, max {value.max():g})")
+        values.append(value)
+    return values
+
+
+def _write(scene, names, tensors):
+    views = scene.params
+    for name, value in zip(names, _check(scene, names, tensors)):
+        views[name][...] = value
+
+
+def _fingerprints(scene, skip):
+    """Checksums of every parameter not in `skip`: what backward compares with its forward's."""
+    return {name: zlib.adler32(view) for name, view in scene.params.items() if name not in skip}
 
 
 class _Render(torch.autograd.Function):
@@ -41,15 +69,26 @@ class _Render(torch.autograd.Function):
         image = _backlight.render(scene, spp=options["spp"], seed=options["seed"], camera=options["camera"],
                                   resolution=options["resolution"])
         ctx.scene, ctx.names, ctx.options = scene, names, options
+        ctx.others = _fingerprints(scene, set(names))
         ctx.save_for_backward(*tensors)
         reference = tensors[0] if tensors else None
         out = torch.from_numpy(image)
         return out.to(reference.device) if reference is not None else out
 
     @staticmethod
+    @torch.autograd.function.once_differentiable  # double backward raises instead of dropping terms
     def backward(ctx, grad_output):
         tensors = ctx.saved_tensors
         _write(ctx.scene, ctx.names, tensors)
+        # Parameters this render did not take as tensors are read from the scene as they are now:
+        # if one changed since forward (another render's tensors, a write through a view), the
+        # gradient would be taken at values the image was not rendered with.
+        now = _fingerprints(ctx.scene, set(ctx.names))
+        changed = [name for name, value in ctx.others.items() if now.get(name) != value]
+        if changed:
+            raise _backlight.Error(
+                f"parameter '{changed[0]}' changed between this render's forward and backward (it is not one of its "
+                f"tensors {list(ctx.names)}): pass it as a tensor to every render, or render again after changing it")
         o = ctx.options
         d_image = grad_output.detach().to("cpu", torch.float32).contiguous().numpy()
         grads = _backlight.backward(ctx.scene, d_image, method=o["method"], spp=o["spp"], seed=o["seed"],
@@ -62,9 +101,13 @@ class _Render(torch.autograd.Function):
 
 def render(scene, params, *, spp=None, seed=None, camera=0, resolution=None, method="prb", adjoint_seed=None):
     """Renders scene with the given parameter tensors ({name: tensor shaped like scene.params[name]}) and
-    returns a float32 tensor (height, width, 3) that gradients flow through back to those tensors."""
+    returns a float32 tensor (height, width, 3) that gradients flow through back to those tensors.
+    Parameters not given here must keep their values until backward (it raises otherwise); double
+    backward is not supported (it raises)."""
     if not params:
         raise _backlight.Error("params: give at least one {name: tensor} to differentiate")
+    if method not in _METHODS:
+        raise _backlight.Error(f"unknown method '{method}' (prb, rb or taped)")
     names = list(params)
     options = {"spp": spp, "seed": seed, "camera": camera, "resolution": resolution, "method": method,
                "adjoint_seed": adjoint_seed}

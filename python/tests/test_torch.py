@@ -82,6 +82,55 @@ def test_bad_tensors_raise():
         backlight.torch.render(scene, {"nope": torch.ones(3)}, spp=1, resolution=RES)
     with pytest.raises(backlight.Error, match="at least one"):
         backlight.torch.render(scene, {}, spp=1, resolution=RES)
+    r = torch.tensor(scene.params["light.radiance"])
+    with pytest.raises(backlight.Error, match="expected a torch.Tensor"):
+        backlight.torch.render(scene, {"light.radiance": np.ones(3, np.float32)}, spp=1, resolution=RES)
+    with pytest.raises(backlight.Error, match="floating-point"):
+        backlight.torch.render(scene, {"light.radiance": torch.ones(3, dtype=torch.bool)}, spp=1, resolution=RES)
+    with pytest.raises(backlight.Error, match="unknown method 'magic'"):  # at forward, not in backward
+        backlight.torch.render(scene, {"light.radiance": r}, spp=1, resolution=RES, method="magic")
+
+
+def test_a_failed_forward_leaves_the_scene_unchanged():
+    # An invalid tensor used to be written before the error (every later render then failed), and
+    # tensors before an unknown name were written.
+    scene = backlight.load(CORNELL)
+    radiance = scene.params["light.radiance"].copy()
+    with pytest.raises(backlight.Error, match="valid range"):
+        backlight.torch.render(scene, {"light.radiance": torch.tensor([-1.0, 1.0, 1.0])}, spp=1, resolution=RES)
+    with pytest.raises(backlight.Error, match="unknown parameter 'nope'"):
+        backlight.torch.render(scene, {"light.radiance": torch.tensor(radiance * 2), "nope": torch.ones(3)}, spp=1,
+                               resolution=RES)
+    np.testing.assert_array_equal(scene.params["light.radiance"], radiance)
+    backlight.render(scene, spp=1, resolution=RES)
+
+
+def test_other_parameters_changed_before_backward_raise():
+    # The gradient used to be taken at the changed value of a parameter the render did not take as a
+    # tensor (another render's tensors, or a write through a view).
+    scene = backlight.load(CORNELL)
+    t = torch.tensor(scene.params["light.radiance"], requires_grad=True)
+    image = backlight.torch.render(scene, {"light.radiance": t}, spp=2, seed=5, resolution=RES)
+    backlight.torch.render(scene, {"plastic.albedo": torch.tensor([0.9, 0.1, 0.1])}, spp=2, seed=5, resolution=RES)
+    with pytest.raises(backlight.Error, match="'plastic.albedo' changed between this render's forward and backward"):
+        image.sum().backward()
+    # Put back, the same graph's backward gives the module's gradient.
+    scene.params["plastic.albedo"][...] = backlight.load(CORNELL).params["plastic.albedo"]
+    image = backlight.torch.render(scene, {"light.radiance": t}, spp=2, seed=5, resolution=RES)
+    image.sum().backward()
+    expected = backlight.backward(scene, np.ones((RES[1], RES[0], 3), np.float32), spp=2, seed=5, resolution=RES,
+                                  params=["light.radiance"])["light.radiance"]
+    np.testing.assert_allclose(t.grad.numpy(), expected, rtol=1e-6)
+
+
+def test_double_backward_raises():
+    # Second-order terms used to be dropped silently (the gradient had no graph).
+    scene = backlight.load(CORNELL)
+    t = torch.tensor(scene.params["light.radiance"], requires_grad=True)
+    loss = (backlight.torch.render(scene, {"light.radiance": t}, spp=1, seed=0, resolution=(8, 8)) ** 2).sum()
+    g, = torch.autograd.grad(loss, t, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiate twice"):
+        (g.sum() + t.sum()).backward()
 
 
 @pytest.mark.parametrize("example", ["torch_texture.py", "torch_masked_loss.py"])
