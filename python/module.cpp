@@ -173,26 +173,21 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
   if (set) {
     for (const auto& [key, value] : *set) {
       const std::string name = py::str(key);
-      // Numbers (Python or NumPy scalars), sequences of them, or a file name.
-      auto number = [&](const py::handle& v) {
-        if (!py::isinstance<py::bool_>(v) && !py::isinstance<py::str>(v) && PyNumber_Check(v.ptr())) {
-          PyObject* f = PyNumber_Float(v.ptr());
-          if (f) return std::string(py::repr(py::reinterpret_steal<py::object>(f)));
-          PyErr_Clear();
-        }
-        throw InputError("set: '" + name + "': expected a number, a list of numbers or an image file name");
-      };
-      std::string rhs;
+      if (s->scene->params.find(name) < 0) throw InputError("set: unknown parameter '" + name + "' (see scene.params)");
+      // A file name (str), or numbers: a number, a (nested) sequence or an array of any shape,
+      // taken in C order.
       if (py::isinstance<py::str>(value)) {
-        rhs = py::str(value);
-      } else if (py::isinstance<py::list>(value) || py::isinstance<py::tuple>(value) ||
-                 py::isinstance<py::array>(value)) {
-        for (const auto& v : py::list(py::reinterpret_borrow<py::object>(value)))
-          rhs += (rhs.empty() ? "" : ",") + number(v);
-      } else {
-        rhs = number(value);
+        const std::string file = py::str(value);
+        if (file.empty()) throw InputError("set: '" + name + "': an empty file name");
+        apply_override(*s->scene, name + "=" + file);
+        continue;
       }
-      apply_override(*s->scene, name + "=" + rhs);
+      auto numbers = py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(value);
+      if (py::isinstance<py::bool_>(value) || !numbers) {
+        PyErr_Clear();
+        throw InputError("set: '" + name + "': expected a number, numbers (a list or an array) or an image file name");
+      }
+      set_param_values(*s->scene, name, std::vector<float>(numbers.data(), numbers.data() + numbers.size()), "set");
     }
     s->scene->prepare_sampling();
   }
@@ -275,7 +270,16 @@ PYBIND11_MODULE(_backlight, m) {
     try {
       if (p) std::rethrow_exception(p);
     } catch (const InputError& e) {
-      error(e.what());
+      // Messages quote file contents and names, which need not be UTF-8: undecodable bytes are
+      // shown as \xNN (PyErr_SetString left such a message empty).
+      const std::string m = e.what();
+      PyObject* text = PyUnicode_DecodeUTF8(m.data(), Py_ssize_t(m.size()), "backslashreplace");
+      if (!text) {
+        PyErr_Clear();
+        text = PyUnicode_FromString("(an error message that could not be decoded)");
+      }
+      PyErr_SetObject(error.ptr(), text);
+      Py_XDECREF(text);
     }
   });
 

@@ -291,15 +291,8 @@ void apply_override(Scene& scene, const std::string& assignment) {
       throw InputError("--set " + name + ": '" + rhs + "' is neither numbers nor an existing image file");
   }
   if (numeric) {
-    if (values.size() == 1 && p.size() > 1) values.assign(p.size(), values[0]);  // broadcast a scalar
-    if (values.size() == 3 && p.is_image() && p.channels() == 3) {
-      std::vector<float> full(p.size());
-      for (size_t i = 0; i < full.size(); ++i) full[i] = values[i % 3];
-      values = full;
-    }
-    if (values.size() != p.size())
-      throw InputError("--set " + name + ": got " + std::to_string(values.size()) + " values, parameter has shape " +
-                       scene.params.shape_string(h));
+    set_param_values(scene, name, std::move(values), "--set");
+    return;
   } else if (p.shape.size() == 4 || std::filesystem::path(rhs).extension() == ".vol" ||
              std::filesystem::path(rhs).extension() == ".vdb") {
     // A volume grid: a .vol or .vdb file of exactly the parameter's [Z, Y, X, C] (the .vdb grid
@@ -335,6 +328,26 @@ void apply_override(Scene& scene, const std::string& assignment) {
   Param candidate = p;
   candidate.value = values;
   validate_param(candidate, "--set " + name);
+  p.value = std::move(values);
+  scene.prepare_sampling();
+}
+
+void set_param_values(Scene& scene, const std::string& name, std::vector<float> values, const std::string& where) {
+  const int h = scene.params.find(name);
+  if (h < 0) throw InputError(where + ": unknown parameter '" + name + "' (see `backlight params`)");
+  Param& p = scene.params[h];
+  if (values.size() == 1 && p.size() > 1) values.assign(p.size(), values[0]);  // broadcast a scalar
+  if (values.size() == 3 && p.is_image() && p.channels() == 3) {
+    std::vector<float> full(p.size());
+    for (size_t i = 0; i < full.size(); ++i) full[i] = values[i % 3];
+    values = full;
+  }
+  if (values.size() != p.size())
+    throw InputError(where + " " + name + ": got " + std::to_string(values.size()) + " values, parameter has shape " +
+                     scene.params.shape_string(h));
+  Param candidate = p;
+  candidate.value = values;
+  validate_param(candidate, where + " " + name);
   p.value = std::move(values);
   scene.prepare_sampling();
 }

@@ -35,6 +35,9 @@ Mesh make_cube();
 
 // Applies `--set NAME=FILE|v1,v2,...`; errors name the parameter and the problem.
 void apply_override(Scene& scene, const std::string& assignment);
+// Sets parameter `name` to `values` (one value for every element, or three for every pixel of an
+// RGB image, broadcast), checked as --set checks them; `where` starts the errors ("--set", "set").
+void set_param_values(Scene& scene, const std::string& name, std::vector<float> values, const std::string& where);
 // Checks a parameter's values: finite and inside [lower, upper].
 void validate_param(const Param& p, const std::string& where);
 

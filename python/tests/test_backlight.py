@@ -150,6 +150,14 @@ def test_renders_release_the_gil(scene):
     (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, params=["nope"]),
      "unknown parameter 'nope'"),
     (lambda s: backlight.grad(s, np.zeros((20, 24, 3), np.float32), resolution=RES, loss="l7"), "l7"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": []}), "got 0 values"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": ""}), "an empty file name"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance=1": 2}), "unknown parameter 'light.radiance=1'"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": True}), "expected a number"),
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": ["a", "b", "c"]}), "expected a number"),
+    # Messages quoting bytes that are not UTF-8 (a PNG read as JSON; a bytes path) came through empty.
+    (lambda s: backlight.load(os.path.join(ROOT, "scenes", "cornell", "wall.png")), "malformed JSON"),
+    (lambda s: backlight.load(b"/nonexistent/\xff.json"), "/nonexistent/\\xff.json: file not found"),
 ])
 def test_bad_arguments_raise_one_line_errors(scene, call, message):
     with pytest.raises(backlight.Error) as info:
@@ -211,3 +219,17 @@ def test_values_put_back_after_a_failed_geometry_step_render_as_before(scene):
         backlight.render(scene, spp=4, seed=1, resolution=RES)
     positions[:] = loaded
     assert np.array_equal(backlight.render(scene, spp=4, seed=1, resolution=RES), before)
+
+
+def test_set_takes_numbers_of_any_shape():
+    # Lists longer than ~60 numbers were joined into one string and refused as a file name;
+    # nested lists and 2-D arrays were refused.
+    positions = backlight.load(CORNELL).params["plastic_box.positions"] * np.float32(1.01)
+    s = backlight.load(CORNELL, set={"plastic_box.positions": positions.ravel().tolist(),
+                                     "light.radiance": [[5.0, 6.0, 7.0]],
+                                     "wall.albedo": np.full((1024, 1024, 3), 0.25),
+                                     "plastic.albedo": np.float64(0.5)})
+    np.testing.assert_array_equal(s.params["plastic_box.positions"], positions)
+    np.testing.assert_array_equal(s.params["light.radiance"], [5, 6, 7])
+    assert np.all(s.params["wall.albedo"] == 0.25)
+    np.testing.assert_array_equal(s.params["plastic.albedo"], [0.5, 0.5, 0.5])
