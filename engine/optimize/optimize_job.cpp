@@ -982,6 +982,10 @@ class Job {
           for (float& x : param.value) x = std::exp(x);
         if (p.bounds_outside_adam)
           for (float& x : param.value) x = std::clamp(x, p.lower, p.upper);
+        // And always into the parameter's valid range (an albedo in [0, 1], a roughness in its
+        // own): a step must not produce values the scene loader would refuse. Bounds inside it
+        // make this a no-op.
+        for (float& x : param.value) x = std::clamp(x, param.lower, param.upper);
         const Stage* stage = stage_at(p, it);
         const int average_from = stage && stage->average_from >= 0 ? stage->average_from : p.average_from;
         if (average_from >= 0 && it + 1 > average_from) {

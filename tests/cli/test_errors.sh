@@ -434,6 +434,19 @@ PY
   resume_error state_fifo 'os.remove(d + "/state.json"); os.mkfifo(d + "/state.json")' "state.json" "not a regular file"
   resume_error state_directory 'os.remove(d + "/state.json"); os.mkdir(d + "/state.json")' "state.json" \
     "not a regular file"
+  # Steps stay in the parameter's valid range without bounds (an albedo went to [-10, 8]).
+  sed -e 's/"lr": 0.05, "bounds": \[0, 1\], "init": 0.5/"lr": 3, "init": 0.5/' -e 's/opt_base/opt_unbounded/' \
+    small/opt.json >small/opt_unbounded.json
+  if run_bin out.opt_unbounded err.opt_unbounded optimize small/opt_unbounded.json -q; then
+    python3 - small/opt_unbounded/checkpoint/wall.albedo.value <<'PY' || fail "unbounded steps left the valid range"
+import struct, sys
+data = open(sys.argv[1], "rb").read()
+v = struct.unpack("<%df" % (len(data) // 4), data)
+assert min(v) >= 0 and max(v) <= 1 and min(v) < max(v), (min(v), max(v))
+PY
+  else
+    fail "optimize small/opt_unbounded.json: $(cat err.opt_unbounded)"
+  fi
 else
   fail "fixture: optimize small/opt.json: $(cat err.opt_base)"
 fi
