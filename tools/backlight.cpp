@@ -5,6 +5,7 @@
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -250,7 +251,9 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   Image target, adjoint;
   GradientRequest rq = make_request(f, *scene, c.method, c.loss, c.target, c.adjoint_image, target, adjoint);
   if (c.directions < 1) throw InputError("--directions must be ≥ 1");
-  if (!(c.eps > 0)) throw InputError("--eps must be > 0");
+  limits::require_at_most("--directions", "direction count", uint64_t(c.directions), limits::kCheckDirections);
+  if (!(c.eps > 0) || !std::isfinite(c.eps)) throw InputError("--eps must be a finite number > 0");
+  if (!(c.tolerance >= 0) || !std::isfinite(c.tolerance)) throw InputError("--tolerance must be a finite number ≥ 0");
   if (scene->params.find(c.param) < 0) throw InputError("unknown parameter '" + c.param + "' (see `backlight params`)");
   if (scene->settings.rr_depth > 0 &&
       (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))

@@ -15,11 +15,12 @@
 
 namespace bl::limits {
 
-inline constexpr uint64_t kImageSide = 65536;          // width or height of an image, film or texture
-inline constexpr uint64_t kImagePixels = 1ull << 28;   // width × height (268 M pixels, ~3 GB as RGB float)
-inline constexpr uint64_t kSpp = 1ull << 20;           // samples per pixel in one pass
-inline constexpr uint64_t kGridVoxels = 1ull << 30;    // voxels of a volume grid (4 GB as float)
-inline constexpr uint64_t kMeshElements = 1ull << 28;  // vertices, or triangles, of one mesh
+inline constexpr uint64_t kImageSide = 65536;             // width or height of an image, film or texture
+inline constexpr uint64_t kImagePixels = 1ull << 28;      // width × height (268 M pixels, ~3 GB as RGB float)
+inline constexpr uint64_t kSpp = 1ull << 20;              // samples per pixel in one pass
+inline constexpr uint64_t kCheckDirections = 1ull << 16;  // `check --directions`: two renders each
+inline constexpr uint64_t kGridVoxels = 1ull << 30;       // voxels of a volume grid (4 GB as float)
+inline constexpr uint64_t kMeshElements = 1ull << 28;     // vertices, or triangles, of one mesh
 // All meshes of one scene (or one glTF file) together, every instance counted: a glTF node tree
 // can instance one mesh thousands of times, and a mesh can list one accessor in many primitives,
 // so a 100 KB file could otherwise ask for 10^10 vertices.

@@ -268,7 +268,15 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     double predicted = 0;
     for (size_t i = 0; i < v.size(); ++i) predicted += double(gradient[i]) * (double(plus[i]) - double(minus[i]));
     row.adjoint = predicted / (2 * eps);
+    for (size_t i = 0; i < v.size(); ++i)
+      if (!std::isfinite(plus[i]) || !std::isfinite(minus[i]))
+        throw InputError("--eps " + std::to_string(eps) + ": θ ± eps·v of '" + name + "' is not finite in float");
     row.finite_difference = (loss_at(plus) - loss_at(minus)) / (2 * eps);
+    if (!std::isfinite(row.finite_difference)) {
+      scene.params[h].value = theta;
+      throw InputError("--eps " + std::to_string(eps) + ": the renders at θ ± eps·v of '" + name +
+                       "' give a loss that is not finite (use a smaller --eps)");
+    }
     row.relative_error =
         std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
     rows.push_back(row);

@@ -348,6 +348,16 @@ expect_error taped_memory_budget "re:[0-9]+ MB" "budget" "re:budget of 1 MB" -- 
 expect_error check_unknown_param "nosuch" "unknown parameter" -- check "$small" --spp 1 --target t16.exr --param nosuch
 expect_error check_directions "--directions" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 0 --rr-depth 0
+expect_error check_directions_limit "--directions" "exceeds the limit of" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --directions 2000000000 --rr-depth 0
+expect_error check_eps_inf "--eps" "finite" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --eps inf --rr-depth 0
+expect_error check_eps_huge "--eps" "not finite" -- \
+  check "$small" --spp 1 --target t16.exr --param white.albedo --eps 1e30 --rr-depth 0
+expect_error check_tolerance_nan "--tolerance" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --tolerance nan --rr-depth 0
+expect_error check_tolerance_negative "--tolerance" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --tolerance -1 --rr-depth 0
 # ---------------------------------------------------------------------------------------------
 # Hostile inputs: every file of tests/data/bad/ (crafted to crash, hang or exhaust memory in earlier
 # versions; see its README.md) through the command that reads it. Each gives one line, status 2,
