@@ -26,6 +26,43 @@ namespace bl {
 
 namespace fs = std::filesystem;
 
+void check_encoded_image(const std::string& where, const unsigned char* b, size_t size) {
+  auto be16 = [&](size_t i) { return uint64_t(b[i]) << 8 | b[i + 1]; };
+  auto be32 = [&](size_t i) { return be16(i) << 16 | be16(i + 2); };
+  static const unsigned char kPng[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  if (size >= 29 && std::memcmp(b, kPng, 8) == 0 && std::memcmp(b + 12, "IHDR", 4) == 0) {
+    const uint64_t w = be32(16), h = be32(20), depth = b[24], color = b[25];
+    if (w == 0 || h == 0)
+      throw file_error(where, "corrupt image (PNG of " + std::to_string(w) + " x " + std::to_string(h) + " pixels)");
+    limits::check_image_size(where, w, h);
+    const uint64_t samples = color == 2 ? 3 : color == 4 ? 2 : color == 6 ? 4 : 1;        // RGB, grey+alpha, RGBA
+    const uint64_t raw = h * (1 + (w * samples * std::max<uint64_t>(depth, 1) + 7) / 8);  // filter byte per row
+    if (raw / 1100 > size)
+      throw file_error(where, "corrupt image (" + std::to_string(size) + " bytes cannot hold a PNG of " +
+                                  std::to_string(w) + " x " + std::to_string(h) + " pixels)");
+  } else if (size >= 4 && b[0] == 0xFF && b[1] == 0xD8) {
+    // JPEG: the first start-of-frame segment holds the size.
+    for (size_t pos = 2; pos + 9 <= size;) {
+      if (b[pos] != 0xFF) return;  // not a marker: leave it to the decoder
+      const unsigned m = b[pos + 1];
+      if (m == 0xFF) {
+        ++pos;  // fill byte
+        continue;
+      }
+      if (m == 0x01 || (m >= 0xD0 && m <= 0xD8)) {
+        pos += 2;
+        continue;
+      }
+      const bool sof = m >= 0xC0 && m <= 0xCF && m != 0xC4 && m != 0xC8 && m != 0xCC;
+      if (sof) {
+        limits::check_image_size(where, be16(pos + 7), be16(pos + 5));
+        return;
+      }
+      pos += 2 + be16(pos + 2);
+    }
+  }
+}
+
 namespace {
 // Swaps the C stdio stream `stderr` for /dev/null while alive. The codecs inside OpenImageIO
 // (libjpeg) print their own warnings and errors through stdio; our one-line error says what went wrong. File
@@ -381,6 +418,7 @@ bool png_read_rows(PngRead* r, png_bytep* rows) {
 }
 
 Image read_png(const std::string& path, const std::vector<unsigned char>& bytes) {
+  check_encoded_image(path, bytes.data(), bytes.size());
   PngRead r;
   r.bytes = &bytes;
   r.png = png_create_read_struct(PNG_LIBPNG_VER_STRING, &r, png_on_error, png_on_warning);
@@ -416,6 +454,8 @@ Image read_png(const std::string& path, const std::vector<unsigned char>& bytes)
 Image read_pfm(const std::string& path) {
   FileProbe file(path);
   const std::string head = file.read(0, 128);
+  if (head.size() < 3 || !std::isspace(static_cast<unsigned char>(head[2])))
+    throw file_error(path, "corrupt image (PFM magic is PF or Pf followed by white space)");
   size_t pos = 2;
   auto token = [&]() {
     while (pos < head.size() && std::isspace(static_cast<unsigned char>(head[pos]))) ++pos;
@@ -437,10 +477,13 @@ Image read_pfm(const std::string& path) {
     throw file_error(path, "corrupt image (PFM header: " + ws + " x " + hs + ", scale " + ss + ")");
   limits::check_image_size(path, uint64_t(std::min(w, 1e12)), uint64_t(std::min(h, 1e12)));
   const int channels = head[1] == 'F' ? 3 : 1;
-  Image img(int(w), int(h), channels);
-  const size_t row = size_t(img.width) * size_t(channels);
-  if (file.size() < pos || (file.size() - pos) / sizeof(float) < row * size_t(img.height))
+  const size_t row = size_t(w) * size_t(channels);
+  // Checked before allocating: a 30-byte header may claim gigabytes.
+  if (file.size() < pos || (file.size() - pos) / sizeof(float) < row * size_t(h))
     throw file_error(path, "corrupt image (PFM file shorter than its " + ws + " x " + hs + " pixels)");
+  if ((file.size() - pos) != row * size_t(h) * sizeof(float))
+    throw file_error(path, "corrupt image (PFM file longer than its " + ws + " x " + hs + " pixels)");
+  Image img(int(w), int(h), channels);
   const bool swap = (scale < 0) != (std::endian::native == std::endian::little);
   for (int y = 0; y < img.height; ++y) {
     const std::string bytes = file.read(pos + uint64_t(y) * row * sizeof(float), row * sizeof(float));

@@ -34,6 +34,11 @@ Image box_downsample(const Image& image, int k);
 // corrupt, NaN/inf) throw InputError naming the file.
 Image read_image(const std::string& path, bool decode_srgb);
 Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_image without path-error mapping
+// Before decoding an encoded PNG or JPEG held in memory: its header's pixel size is within the
+// image limits and, for PNG, its bytes can hold that many pixels (deflate expands at most ~1032-
+// fold): a few hundred bytes claiming 16000 × 16000 pixels must not allocate 768 MB first. Errors
+// name `where`; other formats pass unchecked.
+void check_encoded_image(const std::string& where, const unsigned char* bytes, size_t size);
 // Throws InputError unless the extension is one write_image supports (check before long work).
 void check_output_format(const std::string& path);
 // Writes by extension: .exr/.pfm/.hdr as float, .png/.jpg as sRGB 8-bit clamped. Atomic.

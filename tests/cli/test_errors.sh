@@ -66,6 +66,20 @@ expect_error_now() {
   done
 }
 
+# expect_error_small NAME PATTERN... -- ARGS...: expect_error with no room for a large allocation:
+# an input whose header claims gigabytes must be refused before allocating them. The address space
+# is limited (ulimit -v); under AddressSanitizer, which reserves terabytes of it, its allocation
+# size cap does the same.
+expect_error_small() {
+  cases=$((cases + 1))
+  throttle
+  if [ -n "${ASAN_OPTIONS:-}" ]; then
+    (export ASAN_OPTIONS="$ASAN_OPTIONS:max_allocation_size_mb=600:allocator_may_return_null=0" && expect_error_now "$@") &
+  else
+    (ulimit -v 800000 && expect_error_now "$@") &
+  fi
+}
+
 # expect_ok NAME ARGS...: exit 0 (stdout in out.NAME, stderr in err.NAME).
 expect_ok() {
   local name="$1"; shift
@@ -186,6 +200,29 @@ expect_error texture_png_truncated "cut.png" "re:cannot read|corrupt" -- \
 # the rest (".qt" once reached OpenImageIO's FFmpeg plugin, which leaked; found by fuzz_set).
 expect_error texture_nul_in_file_name "random.png" "NUL byte" -- \
   render "$(v texnul 's["materials"]["wall"]["albedo"]["file"] = "random.png\x00.qt"')" -o o.exr
+# Headers that claim more pixels than the file holds are refused before the allocation: a PFM of
+# 16384² pixels in 768 bytes (3.2 GB allocated first), a PNG of 16000² in 71 bytes (768 MB), and
+# the same PNG as a glTF image (tinygltf's decoder allocated for it); PFM magic and length exact.
+python3 - <<'PY'
+import struct, zlib
+open("small/claim.pfm", "wb").write(b"PF\n16384 16384\n-1\n" + bytes(768))
+open("small/pf4.pfm", "wb").write(b"PF4\n8 8\n-1\n" + bytes(768))
+open("small/trailing.pfm", "wb").write(b"PF\n8 8\n-1\n" + bytes(768 + 5))
+def chunk(t, d): return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))
+png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 16000, 16000, 8, 2, 0, 0, 0)) +
+       chunk(b"IDAT", zlib.compress(bytes(400))) + chunk(b"IEND", b""))
+open("small/claim.png", "wb").write(png)
+PY
+expect_error_small texture_pfm_claims_gigabytes "claim.pfm" "shorter than its 16384 x 16384 pixels" -- \
+  render "$small" --set wall.albedo=small/claim.pfm -o o.exr -q
+expect_error texture_pfm_magic "pf4.pfm" "PFM magic" -- render "$small" --set wall.albedo=small/pf4.pfm -o o.exr -q
+expect_error texture_pfm_trailing "trailing.pfm" "longer than its 8 x 8 pixels" -- \
+  render "$small" --set wall.albedo=small/trailing.pfm -o o.exr -q
+expect_error_small texture_png_claims_gigabytes "claim.png" "cannot hold a PNG of 16000 x 16000 pixels" -- \
+  render "$small" --set wall.albedo=small/claim.png -o o.exr -q
+expect_error_small target_png_claims_gigabytes "claim.png" "cannot hold" -- \
+  grad "$small" --spp 1 --target small/claim.png --out g_claim -q
+
 # Bytes no supported reader claims are refused before any OpenImageIO plugin sees them.
 printf 'SIMPLE  =                    T' >small/fits.png
 expect_error texture_unknown_format "fits.png" "unsupported image format" -- \
@@ -219,6 +256,9 @@ expect_error gltf_buffer_view_buffer "bvbuf.gltf" "re:buffer" -- \
   render "$(gv bvbuf 's["bufferViews"][0]["buffer"] = 5')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_node "node.gltf" "node" -- \
   render "$(gv node 's["scenes"][0]["nodes"] = [0, 77]')" -o o.exr --resolution 8x8 --spp 1
+cp small/claim.png g/claim.png
+expect_error_small gltf_image_claims_gigabytes "claimimg.gltf" "cannot hold a PNG of 16000 x 16000 pixels" -- \
+  render "$(gv claimimg 's["images"][0] = {"uri": "claim.png"}')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_texture_index "texidx.gltf" "texture" -- \
   render "$(gv texidx 's["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = 42')" \
     -o o.exr --resolution 8x8 --spp 1
