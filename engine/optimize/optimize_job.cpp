@@ -139,17 +139,37 @@ struct Config {
 };
 
 std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
+  // Numbers as written (std::to_string kept 6 decimals: an init of 1.5e-7 became 0).
+  auto number = [](double x) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.17g", x);
+    return std::string(buf);
+  };
   if (v.is_string()) return name + "=" + (dir / v.get<std::string>()).lexically_normal().string();
-  if (v.is_number()) return name + "=" + std::to_string(v.get<double>());
+  if (v.is_number()) return name + "=" + number(v.get<double>());
   if (v.is_array()) {
     std::string s = name + "=";
     for (size_t i = 0; i < v.size(); ++i) {
       if (!v[i].is_number()) n.fail_at(name, "expected numbers");
-      s += (i ? "," : "") + std::to_string(v[i].get<double>());
+      s += (i ? "," : "") + number(v[i].get<double>());
     }
     return s;
   }
   n.fail_at(name, "expected a file name, a number or a list of numbers");
+}
+
+// apply_override for an assignment the config at JSON pointer `pointer` makes: its errors name
+// the config and the pointer, not a --set nobody gave.
+void apply_config_override(Scene& scene, const std::string& assignment, const std::string& file,
+                           const std::string& pointer) {
+  try {
+    apply_override(scene, assignment);
+  } catch (const InputError& e) {
+    std::string m = e.what();
+    for (const char* prefix : {"--set: ", "--set "})
+      if (m.rfind(prefix, 0) == 0) m = m.substr(std::strlen(prefix));
+    throw file_error(file, pointer + ": " + m);
+  }
 }
 
 Config parse_config(const std::string& path) {
@@ -574,7 +594,7 @@ class Job {
 
   int run(bool resume) {
     scene_ = load_scene(c_.scene);
-    for (const auto& o : c_.scene_overrides) apply_override(*scene_, o);
+    apply_scene_overrides(*scene_);
     resolve_views();
     for (auto& p : c_.params) {
       p.handle = scene_->params.find(p.name);
@@ -608,6 +628,11 @@ class Job {
     // Under MPI (engine/dist/dist.h) every rank runs this job on its share of each pass's
     // pixels; only rank 0 writes and prints. All ranks read the scene, the targets and, on
     // --resume, the checkpoint: the output folder must be on a filesystem every rank sees.
+    // What the config can get wrong is found before the output folder is made: a start that
+    // fails leaves no folder (and no rendered targets) behind.
+    check_downsampling();
+    if (!resume) dist::agreed_step([&] { apply_initial_values(); });  // a bad "init" fails alike on every rank
+    read_target_inputs();
     if (root_) {
       ensure_output_folder(c_.output);
       // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
@@ -623,8 +648,6 @@ class Job {
     if (resume) {
       // Every rank reads it; a bad checkpoint is reported once, not by each rank.
       dist::agreed_step([&] { start = load_checkpoint(); });
-    } else {
-      dist::agreed_step([&] { apply_initial_values(); });  // a bad "init" fails alike on every rank
     }
     snapshot_initial();
     return optimize(start);
@@ -717,9 +740,12 @@ class Job {
     return key;
   }
 
-  void prepare_targets() {
-    if (root_) fs::create_directories(out("targets"));
-    std::unique_ptr<Scene> reference;
+  // The targets' inputs, read before anything is written: the target files (size-checked) and
+  // the reference variant (its "set" files applied), which renders the other targets and holds
+  // the ground truth of the parameter RMSE.
+  std::map<std::string, Image> target_images_;  // by camera name
+  std::unique_ptr<Scene> reference_;
+  void read_target_inputs() {
     for (size_t v = 0; v < cameras_.size(); ++v) {
       const Camera& cam = scene_->cameras[size_t(cameras_[v])];
       if (auto it = c_.target_files.find(cam.name); it != c_.target_files.end()) {
@@ -728,11 +754,27 @@ class Job {
           throw file_error(it->second, "target is " + std::to_string(t.width) + "x" + std::to_string(t.height) +
                                            " but view '" + cam.name + "' renders " + std::to_string(cam.width) + "x" +
                                            std::to_string(cam.height));
-        targets_.push_back(std::move(t));
+        target_images_[cam.name] = std::move(t);
+      } else if (c_.reference_overrides.empty()) {
+        throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
+      }
+    }
+    if (!c_.reference_overrides.empty()) {
+      reference_ = load_reference();
+      add_extra_cameras(*reference_);
+      if (c_.width)
+        for (auto& rc : reference_->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
+    }
+  }
+
+  void prepare_targets() {
+    if (root_) fs::create_directories(out("targets"));
+    for (size_t v = 0; v < cameras_.size(); ++v) {
+      const Camera& cam = scene_->cameras[size_t(cameras_[v])];
+      if (auto it = target_images_.find(cam.name); it != target_images_.end()) {
+        targets_.push_back(std::move(it->second));
         continue;
       }
-      if (c_.reference_overrides.empty())
-        throw file_error(c_.file, "/views/targets: no target for camera '" + cam.name + "'");
       // Rendered from the reference variant and cached with a key of what it was rendered from
       // (the scene file's bytes, the overrides, spp, camera and film): a cache from another scene
       // or reference, or of the wrong size, is re-rendered. Rank 0 decides (all ranks must take
@@ -752,30 +794,18 @@ class Job {
         targets_.push_back(read_image(cached, false));
         continue;
       }
-      if (!reference) {
-        reference = load_scene(c_.scene);
-        for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
-        for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
-        add_extra_cameras(*reference);
-        if (c_.width)
-          for (auto& rc : reference->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
-      }
-      Image t = render(*reference, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
+      Image t = render(*reference_, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
       if (root_) {
         write_image(cached, t);
         write_text_atomic(key_file, key);
       }
       targets_.push_back(std::move(t));
     }
+    target_images_.clear();
     // Ground truth for the parameter RMSE: the reference variant's values.
-    if (!c_.reference_overrides.empty()) {
-      if (!reference) {
-        reference = load_scene(c_.scene);
-        for (const auto& o : c_.scene_overrides) apply_override(*reference, o);
-        for (const auto& o : c_.reference_overrides) apply_override(*reference, o);
-      }
-      for (auto& p : c_.params) p.ground_truth = reference->params[reference->params.find(p.name)];
-    }
+    if (reference_)
+      for (auto& p : c_.params) p.ground_truth = reference_->params[reference_->params.find(p.name)];
+    reference_.reset();
   }
 
   // The image schedule's views: for each factor k, a copy of every view's camera at 1/k of its
@@ -788,30 +818,34 @@ class Job {
       ScaledViews& views = scaled_views_[k];
       for (size_t v = 0; v < cameras_.size(); ++v) {
         Camera cam = scene_->cameras[size_t(cameras_[v])];
-        if (cam.width % k != 0 || cam.height % k != 0)
-          throw file_error(c_.file, "/image_schedule/" + std::to_string(i) + "/downsample: " + std::to_string(k) +
-                                        " does not divide the " + std::to_string(cam.width) + "x" +
-                                        std::to_string(cam.height) + " of view '" + cam.name + "'");
         cam.name += "/" + std::to_string(k);
-        cam.width /= k, cam.height /= k;
+        cam.width /= k, cam.height /= k;  // k divides them (check_downsampling)
         cam.update();
         views.cameras.push_back(int(scene_->cameras.size()));
         scene_->cameras.push_back(cam);
         views.targets.push_back(box_downsample(targets_[v], k));
       }
     }
-    // Each block loss's k must divide the renders it applies to: the top-level k those after the
-    // last stage (and of stages without their own), a stage's own k that stage's.
+  }
+
+  // Every image-schedule factor divides every view's film, and each block loss's k the renders it
+  // applies to: the top-level k those after the last stage (and of stages without their own), a
+  // stage's own k that stage's.
+  void check_downsampling() const {
     auto check = [&](int k, int f, const std::string& where) {
-      for (size_t v = 0; v < cameras_.size(); ++v) {
-        const Camera& cam = scene_->cameras[size_t(f == 1 ? cameras_[v] : scaled_views_.at(f).cameras[v])];
-        if (cam.width % k != 0 || cam.height % k != 0)
-          throw file_error(c_.file, where + ": " + std::to_string(k) + " does not divide the " +
-                                        std::to_string(cam.width) + "x" + std::to_string(cam.height) + " of view '" +
-                                        scene_->cameras[size_t(cameras_[v])].name + "'" +
-                                        (f == 1 ? "" : " at image-schedule downsample " + std::to_string(f)));
+      for (int c : cameras_) {
+        const Camera& cam = scene_->cameras[size_t(c)];
+        const bool film = cam.width % f == 0 && cam.height % f == 0;
+        if (!film || (cam.width / f) % k != 0 || (cam.height / f) % k != 0)
+          throw file_error(c_.file, where + ": " + std::to_string(film ? k : f) + " does not divide the " +
+                                        std::to_string(film ? cam.width / f : cam.width) + "x" +
+                                        std::to_string(film ? cam.height / f : cam.height) + " of view '" + cam.name +
+                                        "'" +
+                                        (f == 1 || !film ? "" : " at image-schedule downsample " + std::to_string(f)));
       }
     };
+    for (size_t i = 0; i < c_.image_schedule.size(); ++i)
+      check(1, c_.image_schedule[i].downsample, "/image_schedule/" + std::to_string(i) + "/downsample");
     check(c_.loss_downsample, 1, "/loss_downsample");
     for (size_t i = 0; i < c_.image_schedule.size(); ++i) {
       const auto& s = c_.image_schedule[i];
@@ -847,12 +881,29 @@ class Job {
     return s && s->views_per_iteration >= 0 ? s->views_per_iteration : c_.views_per_iteration;
   }
 
+  // The config's "set", "views/reference/set" and a parameter's "init" applied to a scene.
+  void apply_scene_overrides(Scene& scene) const {
+    for (const auto& o : c_.scene_overrides)
+      apply_config_override(scene, o, c_.file, "/set/" + o.substr(0, o.find('=')));
+  }
+  std::unique_ptr<Scene> load_reference() const {
+    auto reference = load_scene(c_.scene);
+    apply_scene_overrides(*reference);
+    for (const auto& o : c_.reference_overrides)
+      apply_config_override(*reference, o, c_.file, "/views/reference/set/" + o.substr(0, o.find('=')));
+    return reference;
+  }
+  void apply_init(Scene& scene, const OptimizedParam& p) const {
+    Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
+    apply_config_override(scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()), c_.file,
+                          "/parameters/" + p.name + "/init");
+  }
+
   void apply_initial_values() {
     for (auto& p : c_.params) {
       Param& param = scene_->params[p.handle];
       if (!p.init.is_null()) {
-        Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
-        apply_override(*scene_, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
+        apply_init(*scene_, p);
       }
       if (!p.stages.empty()) resize_param(param, p.stages[0]);
       p.adam.reset(param.size());
@@ -1486,11 +1537,10 @@ class Job {
         int w = c_.rmse_width ? c_.rmse_width : gt.width(), h = c_.rmse_height ? c_.rmse_height : gt.height();
         // The initial value, rebuilt the same way the run started.
         auto initial_scene = load_scene(c_.scene);
-        for (const auto& o : c_.scene_overrides) apply_override(*initial_scene, o);
+        apply_scene_overrides(*initial_scene);
         Param initial = initial_scene->params[initial_scene->params.find(p.name)];
         if (!p.init.is_null()) {
-          Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
-          apply_override(*initial_scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()));
+          apply_init(*initial_scene, p);
           initial = initial_scene->params[initial_scene->params.find(p.name)];
         }
         double before = truth_rmse(p, initial, initial.value), after = truth_rmse(p, param, param.value);

@@ -484,6 +484,39 @@ PY
   resume_error state_fifo 'os.remove(d + "/state.json"); os.mkfifo(d + "/state.json")' "state.json" "not a regular file"
   resume_error state_directory 'os.remove(d + "/state.json"); os.mkdir(d + "/state.json")' "state.json" \
     "not a regular file"
+  # Config errors found before anything is written: no output folder is left behind (the folder
+  # and its rendered targets used to be made first), and messages name the config's pointer, not
+  # a --set nobody gave.
+  config_error() {  # config_error NAME PYTHON PATTERN...: small/opt.json with PYTHON applied to `s`
+    local name="$1" stmt="$2"; shift 2
+    scene_variant small/opt.json "small/cfg_$name.json" "$stmt; s[\"output\"] = \"cfg_out_$name\""
+    expect_error "config_$name" "$@" -- optimize "small/cfg_$name.json" -q
+  }
+  config_error init_range 's["parameters"]["wall.albedo"]["init"] = 2' "cfg_init_range.json: /parameters/wall.albedo/init" \
+    "valid range"
+  config_error init_missing_file 's["parameters"]["wall.albedo"]["init"] = "nope.png"' \
+    "/parameters/wall.albedo/init" "nope.png"
+  config_error reference_set_missing 's["views"]["reference"]["set"]["wall.albedo"] = "nope.png"' \
+    "/views/reference/set/wall.albedo" "nope.png"
+  config_error set_unknown 's["set"] = {"nosuch.p": 1}' "/set/nosuch.p" "unknown parameter"
+  config_error target_missing 's["views"]["targets"] = {"main": "nope.exr"}' "nope.exr"
+  config_error target_size 's["views"]["targets"] = {"main": "../img75.exr"}' "img75.exr" "7x5"
+  config_error loss_downsample 's["loss_downsample"] = 3' "/loss_downsample" "does not divide"
+  config_error image_schedule 's["image_schedule"] = [{"until": 2, "downsample": 3}]' \
+    "/image_schedule/0/downsample" "does not divide"
+  # Numbers reach the scene as written (std::to_string kept six decimals: 1.5e-7 became 0).
+  scene_variant small/opt.json small/opt_tiny.json \
+    's["parameters"]["wall.albedo"]["init"] = 1.5e-7; s["parameters"]["wall.albedo"]["lr"] = 0; s["output"] = "opt_tiny"; s["iterations"] = 2'
+  if run_bin out.opt_tiny err.opt_tiny optimize small/opt_tiny.json -q; then
+    python3 - small/opt_tiny/checkpoint/wall.albedo.value <<'PY' || fail "init 1.5e-7 did not reach the parameter"
+import struct, sys
+data = open(sys.argv[1], "rb").read()
+v = set(struct.unpack("<%df" % (len(data) // 4), data))
+assert v == {struct.unpack("<f", struct.pack("<f", 1.5e-7))[0]}, v
+PY
+  else
+    fail "optimize small/opt_tiny.json: $(cat err.opt_tiny)"
+  fi
   # Steps stay in the parameter's valid range without bounds (an albedo went to [-10, 8]).
   sed -e 's/"lr": 0.05, "bounds": \[0, 1\], "init": 0.5/"lr": 3, "init": 0.5/' -e 's/opt_base/opt_unbounded/' \
     small/opt.json >small/opt_unbounded.json
@@ -691,6 +724,7 @@ wait
 # Error cases write nothing.
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
 [ ! -e "$bad/out-must-not-exist" ] || fail "a config in tests/data/bad created its output folder"
+for d in small/cfg_out_*; do [ ! -e "$d" ] || fail "a config error left its output folder $d"; done
 for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9 g_err10; do
   [ ! -e "$d" ] || fail "an error case created output directory $d"
 done
