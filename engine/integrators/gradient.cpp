@@ -229,6 +229,17 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
     result.adjoint_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   }
   if (!rq.accumulate) dist::reduce_gradients(scene.params);
+  // Float overflow (a radiance near float's limit, an adjoint of 1e38) gives inf or NaN loss and
+  // gradients that would be written as results: an error naming what overflowed instead.
+  if (!std::isfinite(result.loss))
+    throw InputError(std::string(rq.adjoint_image ? "the functional sum(dI * I)" : "the loss") +
+                     " is not finite: the render or the target exceeds float's range");
+  for (const Param& p : scene.params.all())
+    if (p.requires_grad)
+      for (float g : p.grad)
+        if (!std::isfinite(g))
+          throw InputError("the gradient of '" + p.name +
+                           "' is not finite: float overflow (a radiance or an adjoint image too large)");
   return result;
 }
 

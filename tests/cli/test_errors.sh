@@ -388,6 +388,16 @@ expect_error taped_memory_budget "re:[0-9]+ MB" "budget" "re:budget of 1 MB" -- 
 expect_error check_unknown_param "nosuch" "unknown parameter" -- check "$small" --spp 1 --target t16.exr --param nosuch
 expect_error check_directions "--directions" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 0 --rr-depth 0
+# Overflow: a radiance near float's limit (inside its valid range) and an adjoint of 3e38 gave inf
+# and NaN gradients, written with exit 0.
+expect_error grad_overflow_radiance "the gradient of" "not finite" -- \
+  grad "$small" --spp 1 --target t16.exr --set light.radiance=1e30 --out g_overflow -q
+python3 -c "
+import struct
+w, h = 16, 16
+open('big_adjoint.pfm', 'wb').write(b'PF\\n%d %d\\n-1\\n' % (w, h) + struct.pack('<%df' % (w * h * 3), *([3e38] * (w * h * 3))))"
+expect_error grad_overflow_adjoint "not finite" -- \
+  grad "$small" --spp 1 --adjoint-image big_adjoint.pfm --out g_overflow2 -q
 expect_error check_directions_limit "--directions" "exceeds the limit of" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 2000000000 --rr-depth 0
 expect_error check_eps_inf "--eps" "finite" -- \
