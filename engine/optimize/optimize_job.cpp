@@ -24,6 +24,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <string_view>
 #include <type_traits>
 
 #include "engine/core/errors.h"
@@ -735,6 +736,9 @@ class Job {
     std::string key = "scene " + std::to_string(std::hash<std::string>{}(bytes)) + "\n";
     for (const auto& o : c_.scene_overrides) key += "set " + o + "\n";
     for (const auto& o : c_.reference_overrides) key += "reference " + o + "\n";
+    // What the files behind those names hold (a texture or grid file rewritten in place kept its
+    // name: the cache was reused): every parameter value and mesh of the reference variant.
+    key += "content " + std::to_string(reference_content_) + "\n";
     key += "spp " + std::to_string(c_.reference_spp) + " seed " + std::to_string(0xabcdefull + v) + " camera " +
            cam.name + " " + std::to_string(cam.width) + "x" + std::to_string(cam.height) + "\n";
     return key;
@@ -745,6 +749,7 @@ class Job {
   // the ground truth of the parameter RMSE.
   std::map<std::string, Image> target_images_;  // by camera name
   std::unique_ptr<Scene> reference_;
+  size_t reference_content_ = 0;  // hash of reference_'s parameter values and meshes
   void read_target_inputs() {
     for (size_t v = 0; v < cameras_.size(); ++v) {
       const Camera& cam = scene_->cameras[size_t(cameras_[v])];
@@ -764,6 +769,20 @@ class Job {
       add_extra_cameras(*reference_);
       if (c_.width)
         for (auto& rc : reference_->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
+      auto mix = [&](const void* data, size_t bytes) {
+        const size_t h = std::hash<std::string_view>{}(std::string_view(static_cast<const char*>(data), bytes));
+        reference_content_ = reference_content_ * 1099511628211ull ^ h;
+      };
+      for (const Param& p : reference_->params.all()) {
+        mix(p.name.data(), p.name.size());
+        mix(p.value.data(), p.value.size() * sizeof(float));
+      }
+      for (const Mesh& m : reference_->meshes) {
+        mix(m.positions.data(), m.positions.size() * sizeof(Vec3f));
+        mix(m.indices.data(), m.indices.size() * sizeof(uint32_t));
+        mix(m.normals.data(), m.normals.size() * sizeof(Vec3f));
+        mix(m.uvs.data(), m.uvs.size() * sizeof(Vec2f));
+      }
     }
   }
 

@@ -527,6 +527,25 @@ PY
   else
     fail "optimize small/opt_tiny.json: $(cat err.opt_tiny)"
   fi
+  # A cached target is rendered again when a file of its reference variant changed in place (the
+  # cache was keyed on the file's name: the old target stayed).
+  cp small/wall.png small/ref.png
+  sed -e 's/"wall.png"/"ref.png"/' -e 's/opt_base/opt_cache/' small/opt.json >small/opt_cache.json
+  cache_md5() { md5sum small/opt_cache/targets/main.exr | cut -d' ' -f1; }
+  if run_bin out.opt_cache err.opt_cache optimize small/opt_cache.json -q; then
+    before="$(cache_md5)"
+    python3 - small/ref.png <<'PY'
+import struct, sys, zlib
+def chunk(t, d): return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))
+rows = b"".join(b"\0" + bytes([200, 40, 40]) * 8 for _ in range(8))
+open(sys.argv[1], "wb").write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 8, 8, 8, 2, 0, 0, 0)) +
+                              chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+PY
+    run_bin out.opt_cache2 err.opt_cache2 optimize small/opt_cache.json -q || fail "rerun: $(cat err.opt_cache2)"
+    [ "$(cache_md5)" != "$before" ] || fail "a changed reference file reused the cached target"
+  else
+    fail "optimize small/opt_cache.json: $(cat err.opt_cache)"
+  fi
   # Steps stay in the parameter's valid range without bounds (an albedo went to [-10, 8]).
   sed -e 's/"lr": 0.05, "bounds": \[0, 1\], "init": 0.5/"lr": 3, "init": 0.5/' -e 's/opt_base/opt_unbounded/' \
     small/opt.json >small/opt_unbounded.json
