@@ -5,8 +5,10 @@
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <iostream>
 #include <memory>
@@ -32,6 +34,18 @@ namespace fs = std::filesystem;
 namespace {
 
 // Flags every scene-consuming command shares.
+// Seeds: decimal digits within 64 bits (CLI11 took "-1" and 10^23 as 2^64 - 1).
+const CLI::Validator kSeed(
+    [](std::string& text) -> std::string {
+      if (text.empty() || text.find_first_not_of("0123456789") != std::string::npos)
+        return "'" + text + "' is not a non-negative integer";
+      errno = 0;
+      (void)std::strtoull(text.c_str(), nullptr, 10);
+      if (errno == ERANGE) return "'" + text + "' exceeds 2^64 - 1";
+      return {};
+    },
+    "SEED");
+
 struct SceneFlags {
   std::string scene;
   std::vector<std::string> sets;
@@ -48,7 +62,7 @@ struct SceneFlags {
     app->add_option("--resolution", resolution, "Film size WxH (overrides the camera's)");
     app->add_option("--camera", camera, "Camera index (default 0)");
     app->add_option("--spp", spp, "Samples per pixel (default: the scene's)");
-    app->add_option("--seed", seed, "Sampler seed (default: the scene's)");
+    app->add_option("--seed", seed, "Sampler seed (default: the scene's)")->check(kSeed);
     app->add_option("--max-depth", max_depth,
                     "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)");
     app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off");
@@ -169,7 +183,8 @@ struct GradFlags {
     app->add_option("--out", out, "Output directory")->required();
     app->add_option("--method", method, "prb (path replay, default), rb (radiative backpropagation) or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
-    app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)");
+    app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)")
+        ->check(kSeed);
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
     app->add_option("--memory-budget", memory_budget,
                     "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
@@ -194,7 +209,7 @@ struct CheckFlags {
     app->add_option("--tolerance", tolerance, "Largest accepted relative error; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
-    app->add_option("--direction-seed", direction_seed, "Seed of the random directions");
+    app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->check(kSeed);
   }
 };
 
@@ -333,7 +348,8 @@ int run(int argc, char** argv) {
   check_flags.add_to(check_cmd);
   cf.add_to(check_cmd);
 
-  std::string config, resume;
+  std::string config;
+  std::optional<std::string> resume;
   int opt_threads = 0;
   bool opt_quiet = false;
   auto* optimize_cmd =
@@ -364,7 +380,10 @@ int run(int argc, char** argv) {
   if (*params_cmd) return cmd_params(params_flags, as_json, dump);
   if (*grad_cmd) return cmd_grad(grad_flags, gf);
   if (*check_cmd) return cmd_check(check_flags, cf);
-  if (*optimize_cmd) return run_optimize(config, resume, opt_threads, opt_quiet);
+  if (*optimize_cmd) {
+    if (resume && resume->empty()) throw InputError("--resume: an empty directory name");
+    return run_optimize(config, resume.value_or(""), opt_threads, opt_quiet);
+  }
   return 0;
 }
 }  // namespace

@@ -40,6 +40,8 @@ size_t parse_memory_size(const std::string& text) {
   if (v * scale > kMaxBudget)
     throw InputError("--memory-budget '" + text + "': " + std::to_string(v * scale) + " bytes exceeds the limit of " +
                      std::to_string(uint64_t(1) << 62));
+  if (v * scale < 1)  // rounds to 0, which means "the default" (80% of RAM) to the taped mode
+    throw InputError("--memory-budget '" + text + "': less than one byte");
   return size_t(v * scale);
 }
 

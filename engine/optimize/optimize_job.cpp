@@ -186,6 +186,7 @@ Config parse_config(const std::string& path) {
     for (auto it = s.at_all().begin(); it != s.at_all().end(); ++it)
       c.scene_overrides.push_back(override_string(it.key(), it.value(), s, dir));
   }
+  if (n.string("output").empty()) n.fail_at("output", "an empty folder name");
   c.output = (dir / n.string("output")).lexically_normal().string();
   c.iterations = int(n.number("iterations", 100, 1, 1e7));
   c.seed = uint64_t(n.number("seed", 0, 0, 4294967295.0));
@@ -314,7 +315,7 @@ Config parse_config(const std::string& path) {
       a.decay = d.string("type");
       if (a.decay != "exponential" && a.decay != "step") d.fail_at("type", "expected \"exponential\" or \"step\"");
       a.decay_rate = d.number_required("rate", 0, 1);
-      a.decay_every = int(d.number("every", a.decay == "step" ? 50 : 0, 0, 1e7));
+      a.decay_every = int(d.number("every", a.decay == "step" ? 50 : 0, a.decay == "step" ? 1 : 0, 1e7));
       d.finish();
     }
     if (p.has("moments")) {
@@ -607,6 +608,19 @@ class Job {
         if (scene_->mesh_poses[k].positions == p.handle) mesh = &scene_->meshes[k];
       if (mesh) p.mesh_indices = mesh->indices;
       const std::string where = c_.file + ": /parameters/" + p.name;
+      // A stage's resolution must fit the parameter: [w, h] for an image, [x, y, z] for a grid
+      // (anything else was ignored without a word).
+      const Param& param = scene_->params[p.handle];
+      for (size_t k = 0; k < p.stages.size(); ++k) {
+        const Stage& st = p.stages[k];
+        if (st.width == 0) continue;
+        const std::string at = where + "/schedule/" + std::to_string(k) + "/resolution: ";
+        if (is_grid(param) && st.depth == 0) throw InputError(at + "a grid parameter takes [x, y, z], got [w, h]");
+        if (param.is_image() && st.depth > 0) throw InputError(at + "an image parameter takes [w, h], got [x, y, z]");
+        if (!is_grid(param) && !param.is_image())
+          throw InputError(at + "only image and grid parameters can change resolution (this one has shape " +
+                           scene_->params.shape_string(p.handle) + ")");
+      }
       if (p.log_space && mesh)
         throw InputError(where + "/parametrization: \"log\" is for positive values, not a mesh's positions");
       if (p.wants_large_steps() && !mesh && is_grid(scene_->params[p.handle])) {
@@ -751,6 +765,11 @@ class Job {
   std::unique_ptr<Scene> reference_;
   size_t reference_content_ = 0;  // hash of reference_'s parameter values and meshes
   void read_target_inputs() {
+    for (const auto& [name, file] : c_.target_files) {  // (a target of no view was ignored)
+      bool viewed = false;
+      for (int c : cameras_) viewed = viewed || scene_->cameras[size_t(c)].name == name;
+      if (!viewed) throw file_error(c_.file, "/views/targets/" + name + ": camera '" + name + "' is not a view");
+    }
     for (size_t v = 0; v < cameras_.size(); ++v) {
       const Camera& cam = scene_->cameras[size_t(cameras_[v])];
       if (auto it = c_.target_files.find(cam.name); it != c_.target_files.end()) {

@@ -398,6 +398,14 @@ w, h = 16, 16
 open('big_adjoint.pfm', 'wb').write(b'PF\\n%d %d\\n-1\\n' % (w, h) + struct.pack('<%df' % (w * h * 3), *([3e38] * (w * h * 3))))"
 expect_error grad_overflow_adjoint "not finite" -- \
   grad "$small" --spp 1 --adjoint-image big_adjoint.pfm --out g_overflow2 -q
+# Seeds are non-negative integers within 64 bits (-1 and 10^23 both became 2^64 - 1).
+expect_error seed_negative "--seed" "not a non-negative integer" -- render "$small" --seed -1 -o o.exr --spp 1 -q
+expect_error seed_overflow "--seed" "exceeds 2^64" -- render "$small" --seed 99999999999999999999999 -o o.exr -q
+expect_error adjoint_seed_negative "--adjoint-seed" -- \
+  grad "$small" --spp 1 --target t16.exr --adjoint-seed -5 --out g_seed -q
+expect_error memory_budget_tiny "--memory-budget" "less than one byte" -- \
+  grad "$small" --spp 1 --target t16.exr --method taped --memory-budget 1e-9MB --out g_tiny -q
+expect_error resume_empty "--resume" "empty" -- optimize small/opt.json --resume "" -q
 expect_error check_directions_limit "--directions" "exceeds the limit of" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 2000000000 --rr-depth 0
 expect_error check_eps_inf "--eps" "finite" -- \
@@ -514,6 +522,16 @@ PY
   config_error loss_downsample 's["loss_downsample"] = 3' "/loss_downsample" "does not divide"
   config_error image_schedule 's["image_schedule"] = [{"until": 2, "downsample": 3}]' \
     "/image_schedule/0/downsample" "does not divide"
+  # Settings that were ignored without a word.
+  config_error target_not_a_view 's["views"]["targets"] = {"left": "../img75.exr"}' "/views/targets/left" "not a view"
+  config_error schedule_vector 's["parameters"]["light.radiance"] = {"lr": 0.1, "schedule": [{"until": 2, "resolution": [4, 4]}]}' \
+    "/parameters/light.radiance/schedule/0/resolution" "only image and grid"
+  config_error schedule_xyz_on_image 's["parameters"]["wall.albedo"]["schedule"] = [{"until": 2, "resolution": [4, 4, 4]}]' \
+    "/parameters/wall.albedo/schedule/0/resolution" "takes [w, h]"
+  config_error decay_every_zero 's["parameters"]["wall.albedo"]["decay"] = {"type": "step", "rate": 0.5, "every": 0}' \
+    "/parameters/wall.albedo/decay" "every"
+  scene_variant small/opt.json small/cfg_output_empty.json 's["output"] = ""'
+  expect_error config_output_empty "/output" "empty folder name" -- optimize small/cfg_output_empty.json -q
   # Numbers reach the scene as written (std::to_string kept six decimals: 1.5e-7 became 0).
   scene_variant small/opt.json small/opt_tiny.json \
     's["parameters"]["wall.albedo"]["init"] = 1.5e-7; s["parameters"]["wall.albedo"]["lr"] = 0; s["output"] = "opt_tiny"; s["iterations"] = 2'
