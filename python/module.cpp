@@ -293,10 +293,12 @@ PYBIND11_MODULE(_backlight, m) {
               auto shape = shape_of(p);
               out[py::str(p.name)] = py::array_t<float>(shape, strides_of(shape), p.value.data(), self);
             }
-            return out;
+            // Read-only: `scene.params[name] = value` on a fresh dict changed nothing, silently.
+            return py::module_::import("types").attr("MappingProxyType")(out);
           },
-          "Every parameter by name: a writable NumPy float32 view of the parameter store (no copy). Writes take "
-          "effect at the next render; values are checked (finite, in range) then.")
+          "Every parameter by name: a writable NumPy float32 view of the parameter store (no copy), in a read-only "
+          "mapping (write into the views: scene.params[name][...] = value). Writes take effect at the next render; "
+          "values are checked (finite, in range) then.")
       .def_property_readonly(
           "param_info",
           [](const PyScene& s) {
@@ -353,7 +355,9 @@ PYBIND11_MODULE(_backlight, m) {
       py::arg("resolution") = py::none(), py::arg("params") = py::none(),
       "Gradient of sum(d_image * render(scene)) with respect to the parameters (all, or the names in params): "
       "{name: float32 array shaped like the parameter}. d_image: float32 (height, width, 3). With adjoint_seed "
-      "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns.");
+      "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns for parameters "
+      "sampling does not depend on (albedos, textures, emission); for roughness-like ones it is exact in expectation "
+      "(sampling is detached).");
   m.def(
       "grad",
       [](PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,

@@ -338,7 +338,8 @@ int run(int argc, char** argv) {
       "grad",
       "Gradient of an image loss (or of a linear functional) with respect to scene parameters.\n"
       "--adjoint-seed defaults to --seed, so by default the written gradient is the exact derivative of\n"
-      "the estimator whose loss is reported (same random numbers).");
+      "the estimator whose loss is reported (same random numbers) for parameters sampling does not depend\n"
+      "on; for roughness-like ones it is exact in expectation (sampling is detached).");
   grad_flags.add_to(grad_cmd);
   gf.add_to(grad_cmd);
 

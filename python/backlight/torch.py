@@ -11,7 +11,7 @@ forward writes the tensors into the scene's parameters and renders; backward wri
 values again (the scene may have been rendered with others in between), transports grad_output
 back through the scene (path replay by default) and returns one gradient per tensor. By default
 the adjoint pass uses the forward's seed, so the gradient is the exact derivative of the image
-forward returned; pass adjoint_seed to decorrelate them (unbiased for losses that are not linear
+forward returned (for parameters sampling does not depend on; roughness-like ones: in expectation); pass adjoint_seed to decorrelate them (unbiased for losses that are not linear
 in the image, as Mitsuba 3 recommends for optimization). The scene's other parameters must keep
 their values from forward to backward (backward checks their checksums and raises if one
 changed); double backward raises.

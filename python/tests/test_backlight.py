@@ -233,3 +233,11 @@ def test_set_takes_numbers_of_any_shape():
     np.testing.assert_array_equal(s.params["light.radiance"], [5, 6, 7])
     assert np.all(s.params["wall.albedo"] == 0.25)
     np.testing.assert_array_equal(s.params["plastic.albedo"], [0.5, 0.5, 0.5])
+
+
+def test_assigning_to_params_raises_instead_of_doing_nothing(scene):
+    # scene.params was a fresh dict each time: assigning to it changed nothing, silently.
+    with pytest.raises(TypeError):
+        scene.params["light.radiance"] = np.ones(3, np.float32)
+    scene.params["light.radiance"][...] = 2.0  # the way: write into the view
+    np.testing.assert_array_equal(scene.params["light.radiance"], [2, 2, 2])
