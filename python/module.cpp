@@ -10,12 +10,17 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <condition_variable>
+#include <exception>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -194,16 +199,58 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
   return s;
 }
 
+// Runs `pass(cancel)` (a render or gradient pass, `cancel` for its PassOptions) on a worker thread
+// while this one, without the GIL, looks for signals every 50 ms: Ctrl-C raises
+// KeyboardInterrupt once the pass has stopped after its current tiles. (Python handles signals
+// between bytecodes of its main thread: a pass run on this thread kept Ctrl-C waiting to its end.)
+template <class Pass>
+void interruptible(Pass&& pass) {
+  std::atomic<bool> cancel{false};
+  std::exception_ptr failure;
+  std::mutex m;
+  std::condition_variable finished;
+  bool done = false, interrupted = false;
+  {
+    py::gil_scoped_release release;
+    std::thread worker([&] {
+      try {
+        pass(&cancel);
+      } catch (...) {
+        failure = std::current_exception();
+      }
+      const std::lock_guard<std::mutex> lock(m);
+      done = true;
+      finished.notify_one();
+    });
+    std::unique_lock<std::mutex> lock(m);
+    while (!finished.wait_for(lock, std::chrono::milliseconds(50), [&] { return done; })) {
+      if (interrupted) continue;
+      lock.unlock();
+      {
+        py::gil_scoped_acquire gil;
+        if (PyErr_CheckSignals() != 0) interrupted = true;  // the exception stays set for below
+      }
+      if (interrupted) cancel = true;
+      lock.lock();
+    }
+    lock.unlock();
+    worker.join();
+  }
+  if (interrupted) throw py::error_already_set();
+  if (failure) std::rethrow_exception(failure);
+}
+
 py::array_t<float> render_py(PyScene& s, const PassArgs& a) {
   const auto lock = lock_for_pass(s);
   refresh(s);
   CameraScope scope(*s.scene, a);
   const PassOptions o = pass_options(*s.scene, a);
   Image image;
-  {
-    py::gil_scoped_release release;
-    image = render(*s.scene, o);
-  }
+  interruptible([&](const std::atomic<bool>* cancel) {
+    PassOptions with_cancel = o;
+    with_cancel.cancel = cancel;
+    image = render(*s.scene, with_cancel);
+  });
   return image_array(std::move(image));
 }
 
@@ -242,8 +289,12 @@ GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* wh
   rq.pass = pass_options(*s.scene, a);
   rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
   require(*s.scene, params);
-  py::gil_scoped_release release;
-  return compute_gradient(*s.scene, rq);
+  GradientResult result;
+  interruptible([&](const std::atomic<bool>* cancel) {
+    rq.pass.cancel = cancel;
+    result = compute_gradient(*s.scene, rq);
+  });
+  return result;
 }
 
 py::dict backward_py(PyScene& s, const py::handle& d_image, const std::string& method, const PassArgs& a,

@@ -241,74 +241,78 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
                     "spp", o.progress);
   progress.set_ranks(dist::size());
   std::atomic<uint64_t> rays{0};
-  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
-    const uint64_t rays_before = Geometry::thread_ray_count();
-    GradientAccumulator& grads = sink.local();
-    Scratch& thread_scratch = scratch.local();
-    std::vector<SampleRecord>& records = thread_scratch.records;
-    for (int y = y0; y < y1; ++y)
-      for (int x = x0; x < x1; ++x) {
-        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
-        CameraPacket packet;  // camera rays as render() traces them
-        // 1. Primal estimates of this pixel's samples.
-        Vec3d sum(0.0);  // the same summation as render(), so both give the same image
-        for (int s0 = 0; s0 < o.spp; s0 += Geometry::kPacket) {
-          const int n = std::min(Geometry::kPacket, o.spp - s0);
-          packet.trace(scene, cam, o.seed, x, y, n, [&](int k) { return s0 + k; });
-          for (int k = 0; k < n; ++k) {
-            const int s = s0 + k;
-            const PathSampler sampler(o.seed, pixel, uint64_t(s));
-            VisibilityRecorder recorder;
-            recorder.sites = o.replay_whole_paths ? nullptr : &sites;
-            records[size_t(s)].radiance = trace_path<float>(scene, packet.start(k), sampler, recorder);
-            records[size_t(s)].visibility = recorder.bits;
-            records[size_t(s)].last_site = o.replay_whole_paths ? std::numeric_limits<int>::max() : recorder.last_site;
-            sum += Vec3d(records[size_t(s)].radiance);
-          }
-        }
-        const Vec3f value(sum / double(o.spp));
-        if (image_out)
-          for (int c = 0; c < 3; ++c) image_out->at(x, y, c) = value[c];
-        // 2. δ per sample: the film's transpose (box filter, mean over spp).
-        const Vec3f delta = adjoint(size_t(pixel), value) / float(o.spp);
-        if (is_zero(delta)) continue;
-        // 3. Transport δ back through the scene: the samples whose paths can produce a derivative
-        // (a vertex at or before their last site), their camera rays a packet at a time.
-        int replayed[Geometry::kPacket];
-        for (int s_next = 0; s_next < o.spp;) {
-          int n = 0;
-          for (; s_next < o.spp && n < Geometry::kPacket; ++s_next)
-            if (records[size_t(s_next)].last_site >= 1) replayed[n++] = s_next;
-          if (n == 0) break;
-          packet.trace(scene, cam, o.seed, x, y, n, [&](int k) { return replayed[k]; });
-          for (int k = 0; k < n; ++k) {
-            const int s = replayed[k];
-            const SampleRecord& record = records[size_t(s)];
-            const PathSampler sampler(o.seed, pixel, uint64_t(s));
-            if (method == AdjointMethod::Prb) {
-              ReplayObserver replay{scene,
-                                    grads,
-                                    delta,
-                                    record.radiance,
-                                    record.visibility,
-                                    record.last_site,
-                                    media_grads,
-                                    &thread_scratch.shadow_points};
-              trace_path<float>(scene, packet.start(k), sampler, replay);
-              replay.flush();
-            } else {
-              RadiativeObserver rb{
-                  scene, grads, delta, o.seed, pixel, uint64_t(s), record.visibility, record.last_site,
-              };
-              trace_path<float>(scene, packet.start(k), sampler, rb);
-              rb.flush();
+  for_each_tile(
+      cam.width, cam.height,
+      [&](int x0, int y0, int x1, int y1) {
+        const uint64_t rays_before = Geometry::thread_ray_count();
+        GradientAccumulator& grads = sink.local();
+        Scratch& thread_scratch = scratch.local();
+        std::vector<SampleRecord>& records = thread_scratch.records;
+        for (int y = y0; y < y1; ++y)
+          for (int x = x0; x < x1; ++x) {
+            const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+            CameraPacket packet;  // camera rays as render() traces them
+            // 1. Primal estimates of this pixel's samples.
+            Vec3d sum(0.0);  // the same summation as render(), so both give the same image
+            for (int s0 = 0; s0 < o.spp; s0 += Geometry::kPacket) {
+              const int n = std::min(Geometry::kPacket, o.spp - s0);
+              packet.trace(scene, cam, o.seed, x, y, n, [&](int k) { return s0 + k; });
+              for (int k = 0; k < n; ++k) {
+                const int s = s0 + k;
+                const PathSampler sampler(o.seed, pixel, uint64_t(s));
+                VisibilityRecorder recorder;
+                recorder.sites = o.replay_whole_paths ? nullptr : &sites;
+                records[size_t(s)].radiance = trace_path<float>(scene, packet.start(k), sampler, recorder);
+                records[size_t(s)].visibility = recorder.bits;
+                records[size_t(s)].last_site =
+                    o.replay_whole_paths ? std::numeric_limits<int>::max() : recorder.last_site;
+                sum += Vec3d(records[size_t(s)].radiance);
+              }
+            }
+            const Vec3f value(sum / double(o.spp));
+            if (image_out)
+              for (int c = 0; c < 3; ++c) image_out->at(x, y, c) = value[c];
+            // 2. δ per sample: the film's transpose (box filter, mean over spp).
+            const Vec3f delta = adjoint(size_t(pixel), value) / float(o.spp);
+            if (is_zero(delta)) continue;
+            // 3. Transport δ back through the scene: the samples whose paths can produce a derivative
+            // (a vertex at or before their last site), their camera rays a packet at a time.
+            int replayed[Geometry::kPacket];
+            for (int s_next = 0; s_next < o.spp;) {
+              int n = 0;
+              for (; s_next < o.spp && n < Geometry::kPacket; ++s_next)
+                if (records[size_t(s_next)].last_site >= 1) replayed[n++] = s_next;
+              if (n == 0) break;
+              packet.trace(scene, cam, o.seed, x, y, n, [&](int k) { return replayed[k]; });
+              for (int k = 0; k < n; ++k) {
+                const int s = replayed[k];
+                const SampleRecord& record = records[size_t(s)];
+                const PathSampler sampler(o.seed, pixel, uint64_t(s));
+                if (method == AdjointMethod::Prb) {
+                  ReplayObserver replay{scene,
+                                        grads,
+                                        delta,
+                                        record.radiance,
+                                        record.visibility,
+                                        record.last_site,
+                                        media_grads,
+                                        &thread_scratch.shadow_points};
+                  trace_path<float>(scene, packet.start(k), sampler, replay);
+                  replay.flush();
+                } else {
+                  RadiativeObserver rb{
+                      scene, grads, delta, o.seed, pixel, uint64_t(s), record.visibility, record.last_site,
+                  };
+                  trace_path<float>(scene, packet.start(k), sampler, rb);
+                  rb.flush();
+                }
+              }
             }
           }
-        }
-      }
-    rays += Geometry::thread_ray_count() - rays_before;
-    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
-  });
+        rays += Geometry::thread_ray_count() - rays_before;
+        progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(o.spp));
+      },
+      o.cancel);
   progress.finish();
   sink.reduce();
   if (image_out) dist::complete_image(*image_out);

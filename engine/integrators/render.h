@@ -1,4 +1,5 @@
 #pragma once
+#include <atomic>
 // Image-level passes: the primal render and the adjoint (gradient) pass.
 #include <cstdint>
 #include <functional>
@@ -16,6 +17,9 @@ struct PassOptions {
   // Adjoint passes: replay every path to its end instead of stopping after its last vertex that
   // can produce a derivative (same gradient, slower; for tests and benchmarks).
   bool replay_whole_paths = false;
+  // Set from another thread (Python's Ctrl-C): the pass skips its remaining tiles and returns
+  // early with a partial result, which the caller discards.
+  const std::atomic<bool>* cancel = nullptr;
 };
 
 struct PassStats {
@@ -49,7 +53,8 @@ PassStats backward(Scene& scene, const PassOptions& options, AdjointMethod metho
 
 // Runs `tile_fn(x0, y0, x1, y1)` over 16×16 tiles in parallel (TBB): under MPI, over this
 // rank's tiles only (engine/dist/dist.h).
-void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn);
+void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn,
+                   const std::atomic<bool>* cancel = nullptr);
 // Pixels in this rank's tiles (all of them on one rank).
 uint64_t owned_pixels(int width, int height);
 

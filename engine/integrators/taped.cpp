@@ -82,47 +82,51 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   // 1. Record the whole render.
   Progress progress("taped record", uint64_t(own_pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
   progress.set_ranks(dist::size());
-  for_each_tile(cam.width, cam.height, [&](int x0, int y0, int x1, int y1) {
-    if (over_budget.load(std::memory_order_relaxed)) return;
-    Tape& tape = tapes.local();
-    current_tape = &tape;
-    const size_t before = tape.size();
-    NoObserver none;
-    for (int y = y0; y < y1; ++y)
-      for (int x = x0; x < x1; ++x) {
-        const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
-        Spectrum<Var> sum(Var(0.f));
-        CameraPacket packet;  // the camera rays as render() traces them
-        for (int s0 = 0; s0 < rq.pass.spp; s0 += Geometry::kPacket) {
-          const int n = std::min(Geometry::kPacket, rq.pass.spp - s0);
-          packet.trace(scene, cam, rq.pass.seed, x, y, n, [&](int k) { return s0 + k; });
-          for (int k = 0; k < n; ++k) {
-            const PathSampler sampler(rq.pass.seed, pixel, uint64_t(s0 + k));
-            sum += trace_path<Var>(scene, packet.start(k), sampler, none);
+  for_each_tile(
+      cam.width, cam.height,
+      [&](int x0, int y0, int x1, int y1) {
+        if (over_budget.load(std::memory_order_relaxed)) return;
+        Tape& tape = tapes.local();
+        current_tape = &tape;
+        const size_t before = tape.size();
+        NoObserver none;
+        for (int y = y0; y < y1; ++y)
+          for (int x = x0; x < x1; ++x) {
+            const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
+            Spectrum<Var> sum(Var(0.f));
+            CameraPacket packet;  // the camera rays as render() traces them
+            for (int s0 = 0; s0 < rq.pass.spp; s0 += Geometry::kPacket) {
+              const int n = std::min(Geometry::kPacket, rq.pass.spp - s0);
+              packet.trace(scene, cam, rq.pass.seed, x, y, n, [&](int k) { return s0 + k; });
+              for (int k = 0; k < n; ++k) {
+                const PathSampler sampler(rq.pass.seed, pixel, uint64_t(s0 + k));
+                sum += trace_path<Var>(scene, packet.start(k), sampler, none);
+              }
+            }
+            Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
+            PixelOutput& out = outputs[pixel];
+            out.tape = &tape;
+            for (int c = 0; c < 3; ++c) {
+              result.image.at(x, y, c) = mean[c].v;
+              out.index[c] = mean[c].index;
+            }
           }
+        // Memory guard: project the final size from the pixels recorded so far, and stop as soon as
+        // the projection or the actual size passes the budget.
+        uint64_t total = entries += tape.size() - before;
+        uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
+        double projected = double(total) * double(kBytesPerEntry) * double(own_pixels) / double(done);
+        if ((done * 20 >= own_pixels && projected > double(budget)) ||
+            double(total * kBytesPerEntry) > double(budget)) {
+          // Keep the projection that tripped the guard (other tiles may project less meanwhile).
+          bool expected = false;
+          if (over_budget.compare_exchange_strong(expected, true))
+            projected_bytes.store(std::max(projected, double(total * kBytesPerEntry))), trigger_pixels.store(done);
         }
-        Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
-        PixelOutput& out = outputs[pixel];
-        out.tape = &tape;
-        for (int c = 0; c < 3; ++c) {
-          result.image.at(x, y, c) = mean[c].v;
-          out.index[c] = mean[c].index;
-        }
-      }
-    // Memory guard: project the final size from the pixels recorded so far, and stop as soon as
-    // the projection or the actual size passes the budget.
-    uint64_t total = entries += tape.size() - before;
-    uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
-    double projected = double(total) * double(kBytesPerEntry) * double(own_pixels) / double(done);
-    if ((done * 20 >= own_pixels && projected > double(budget)) || double(total * kBytesPerEntry) > double(budget)) {
-      // Keep the projection that tripped the guard (other tiles may project less meanwhile).
-      bool expected = false;
-      if (over_budget.compare_exchange_strong(expected, true))
-        projected_bytes.store(std::max(projected, double(total * kBytesPerEntry))), trigger_pixels.store(done);
-    }
-    progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
-    current_tape = nullptr;
-  });
+        progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
+        current_tape = nullptr;
+      },
+      rq.pass.cancel);
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
     throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
