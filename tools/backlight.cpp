@@ -217,8 +217,15 @@ GradientRequest make_request(const SceneFlags& f, const Scene& scene, const std:
                              const std::string& loss, const std::string& target, const std::string& adjoint_image,
                              Image& target_img, Image& adjoint_img) {
   GradientRequest rq;
-  rq.method = parse_method(method);
-  rq.loss = parse_loss(loss);
+  auto flag = [](const char* name, auto parse) {  // errors name the flag
+    try {
+      return parse();
+    } catch (const InputError& e) {
+      throw InputError(std::string(name) + ": " + e.what());
+    }
+  };
+  rq.method = flag("--method", [&] { return parse_method(method); });
+  rq.loss = flag("--loss", [&] { return parse_loss(loss); });
   rq.pass = f.pass(scene);
   rq.adjoint_seed = rq.pass.seed;
   const Camera& cam = scene.cameras.at(size_t(f.camera));

@@ -11,7 +11,7 @@
 namespace bl {
 
 int ParamStore::add(Param p, const std::string& where) {
-  if (find(p.name) >= 0) throw InputError("duplicate parameter name '" + p.name + "'");
+  if (find(p.name) >= 0) throw InputError(where + ": duplicate parameter name '" + p.name + "'");
   uint64_t total = total_values_;
   limits::add_to_total(where, "total parameter size (values of all parameters)", total, p.value.size(),
                        limits::kParamValues);

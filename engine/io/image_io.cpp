@@ -720,7 +720,14 @@ void check_output_format(const std::string& path) {
   if (ext != ".exr" && ext != ".hdr" && ext != ".pfm" && ext != ".png" && ext != ".jpg" && ext != ".jpeg")
     throw file_error(path, "unsupported output format '" + ext + "' (use .exr or .png)");
   fs::path dir = fs::path(path).parent_path();
-  if (!dir.empty() && !fs::is_directory(dir)) throw file_error(path, "output folder does not exist");
+  std::error_code ec;
+  if (!dir.empty() && !fs::is_directory(dir, ec)) {
+    if (ec && ec != std::errc::no_such_file_or_directory) throw file_error(path, "output folder: " + ec.message());
+    throw file_error(path,
+                     fs::exists(dir, ec) ? "'" + dir.string() + "' is not a folder" : "output folder does not exist");
+  }
+  // Found now, not by the rename after the whole render.
+  if (fs::is_directory(path, ec)) throw file_error(path, "is a folder (name an image file)");
   // JPEG and HDR are written by the oiio plugin: a missing plugin fails now, not after the work.
   if (ext == ".hdr" || ext == ".jpg" || ext == ".jpeg")
     (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");

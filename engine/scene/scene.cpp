@@ -267,6 +267,7 @@ void apply_override(Scene& scene, const std::string& assignment) {
   if (eq == std::string::npos || eq == 0)
     throw InputError("--set '" + assignment + "': expected NAME=FILE or NAME=v1,v2,...");
   std::string name = assignment.substr(0, eq), rhs = assignment.substr(eq + 1);
+  if (rhs.empty()) throw InputError("--set " + name + ": no value after '=' (a file name or numbers)");
   int h = scene.params.find(name);
   if (h < 0) throw InputError("--set: unknown parameter '" + name + "' (see `backlight params`)");
   Param& p = scene.params[h];
@@ -287,7 +288,11 @@ void apply_override(Scene& scene, const std::string& assignment) {
       if (item.empty() || end == item.c_str() || *end != '\0') numeric = false;
       values.push_back(v);
     }
-    if (!numeric && rhs.find_first_of("/.") == std::string::npos)
+    // Not numbers and no such file: a list with an empty or malformed item ("0.5,,0.5") is
+    // named as such, not as a missing file.
+    if (!numeric &&
+        (rhs.find_first_of("/.") == std::string::npos ||
+         (rhs.find(',') != std::string::npos && rhs.find_first_not_of("0123456789.,+-eE ") == std::string::npos)))
       throw InputError("--set " + name + ": '" + rhs + "' is neither numbers nor an existing image file");
   }
   if (numeric) {

@@ -406,6 +406,16 @@ expect_error adjoint_seed_negative "--adjoint-seed" -- \
 expect_error memory_budget_tiny "--memory-budget" "less than one byte" -- \
   grad "$small" --spp 1 --target t16.exr --method taped --memory-budget 1e-9MB --out g_tiny -q
 expect_error resume_empty "--resume" "empty" -- optimize small/opt.json --resume "" -q
+# Output and flag problems named at once: -o naming a folder (found by the rename after the whole
+# render), -o under a file, an empty --set value, a list with an empty item, an unknown --loss.
+mkdir -p out_folder.exr
+expect_error output_is_folder "out_folder.exr" "is a folder" -- render "$small" -o out_folder.exr --spp 1 -q
+: >plain_file
+expect_error output_parent_is_file "plain_file" "is not a folder" -- render "$small" -o plain_file/o.exr -q
+expect_error set_empty_value "--set white.albedo" "no value" -- render "$small" --set white.albedo= -o o.exr -q
+expect_error set_empty_item "--set white.albedo" "neither numbers nor" -- \
+  render "$small" --set white.albedo=0.5,,0.5 -o o.exr -q
+expect_error loss_unknown "--loss" "l3" -- grad "$small" --spp 1 --target t16.exr --loss l3 --out g_l3 -q
 expect_error check_directions_limit "--directions" "exceeds the limit of" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 2000000000 --rr-depth 0
 expect_error check_eps_inf "--eps" "finite" -- \
