@@ -9,6 +9,7 @@
 #include <set>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -152,8 +153,26 @@ inline std::string read_json_file(const std::string& path) { return read_input_f
 inline json parse_json_text(const std::string& text, const std::string& file) {
   // nlohmann's parser and every copy of a json value recurse: bound the depth first.
   limits::check_json_depth(file, text);
+  // A key given twice in one object: nlohmann keeps the last without a word (a setting written
+  // twice, the first forgotten). Keys of each open object are collected while parsing.
+  std::vector<std::set<std::string>> open_objects;
+  std::string duplicate;
+  const json::parser_callback_t on_event = [&](int, json::parse_event_t event, json& parsed) {
+    if (event == json::parse_event_t::object_start) {
+      open_objects.emplace_back();
+    } else if (event == json::parse_event_t::object_end) {
+      if (!open_objects.empty()) open_objects.pop_back();
+    } else if (event == json::parse_event_t::key && !open_objects.empty() && duplicate.empty() &&
+               !open_objects.back().insert(parsed.get<std::string>()).second) {
+      duplicate = parsed.get<std::string>();
+    }
+    return true;
+  };
   try {
-    return json::parse(text);
+    json j = json::parse(text, on_event);
+    if (!duplicate.empty())
+      throw file_error(file, "key '" + duplicate.substr(0, 200) + "' appears twice in one object");
+    return j;
   } catch (const json::parse_error& e) {
     std::string msg = e.what();
     if (auto p = msg.find("parse error"); p != std::string::npos) msg = msg.substr(p);

@@ -8,6 +8,7 @@
 
 #include "engine/core/dual.h"
 #include "engine/core/errors.h"
+#include "engine/core/limits.h"
 #include "engine/scene/scene.h"
 
 namespace bl {
@@ -231,6 +232,13 @@ bool Scene::update_geometry() {
       const Vec3d rest = p0 ? Vec3d((*p0)[3 * v], (*p0)[3 * v + 1], (*p0)[3 * v + 2]) : Vec3d(m.positions[v]);
       m.positions[v] = Vec3f(pivot + t + R.apply((rest - pivot) * s));
       if (!pose.rest_normals.empty()) m.normals[v] = Vec3f(R.apply(normalize(Vec3d(pose.rest_normals[v]) / s)));
+    }
+    for (size_t v = 0; v < m.vertex_count(); ++v) {  // the loaders' limit (a scale of 1e29 passed it)
+      const Vec3f& q = m.positions[v];
+      if (!(std::abs(q.x) <= limits::kCoordinate && std::abs(q.y) <= limits::kCoordinate &&
+            std::abs(q.z) <= limits::kCoordinate))
+        throw InputError(where + ": vertex " + std::to_string(v) +
+                         " is not finite or beyond 1e18 in magnitude after the pose");
     }
     for (size_t k = 0; k < m.triangle_count(); ++k) {
       const float area = m.triangle_area(k);
