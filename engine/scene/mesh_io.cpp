@@ -3,7 +3,9 @@
 #include <tiny_obj_loader.h>
 
 #include <bit>
+#include <cerrno>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -24,10 +26,69 @@ void check_finite(const std::string& path, const char* what, float v) {
   if (!std::isfinite(v)) throw file_error(path, std::string(what) + " is NaN or infinite");
 }
 
+// The tokens of one line, split at spaces and tabs.
+std::vector<std::string> tokens_of(const std::string& line) {
+  std::vector<std::string> out;
+  std::istringstream s(line);
+  for (std::string t; s >> t;) out.push_back(t);
+  return out;
+}
+
+// tinyobjloader reads what it cannot parse as 0 ("v nan 0 0", "v abc 0 0") and face indices with
+// atoi (an index past 2^31 wraps around to a valid vertex), so the numbers of the lines it reads
+// are checked first: v, vn and vt values are finite decimal numbers (its grammar: no nan, inf or
+// hex), face indices integers that fit its int.
+void check_obj_numbers(const std::string& path, const std::string& text) {
+  size_t line_number = 0;
+  for (size_t at = 0; at < text.size();) {
+    // Lines end in \n, \r\n or \r, as tinyobjloader reads them.
+    size_t eol = text.find_first_of("\r\n", at);
+    if (eol == std::string::npos) eol = text.size();
+    const std::vector<std::string> tokens = tokens_of(text.substr(at, eol - at));
+    at = eol + (text.compare(eol, 2, "\r\n") == 0 ? 2 : 1);
+    ++line_number;
+    if (tokens.empty()) continue;
+    const std::string& key = tokens[0];
+    const std::string where = "line " + std::to_string(line_number) + ": ";
+    if (key == "v" || key == "vn" || key == "vt") {
+      size_t values = 0;
+      for (size_t i = 1; i < tokens.size() && tokens[i][0] != '#'; ++i, ++values) {
+        const std::string& t = tokens[i];
+        char* end = nullptr;
+        const double v = std::strtod(t.c_str(), &end);
+        if (t.find_first_not_of("0123456789+-.eE") != std::string::npos || end != t.c_str() + t.size() ||
+            !std::isfinite(v))
+          throw file_error(path, where + "'" + t.substr(0, 40) + "' in a '" + key + "' line is not a finite number");
+      }
+      if (values < (key == "vt" ? 1u : 3u))
+        throw file_error(path, where + "a '" + key + "' line needs " + (key == "vt" ? "a value" : "3 values"));
+    } else if (key == "f") {
+      for (size_t i = 1; i < tokens.size(); ++i) {
+        // v, v/vt, v//vn or v/vt/vn: one to three components, the first one required.
+        std::istringstream parts(tokens[i]);
+        int component = 0;
+        for (std::string c; std::getline(parts, c, '/'); ++component) {
+          if (c.empty() && component > 0) continue;
+          const bool integer =
+              !c.empty() && c.find_first_not_of("0123456789", c[0] == '-' ? 1 : 0) == std::string::npos && c != "-";
+          if (!integer || component > 2)
+            throw file_error(
+                path, where + "'" + tokens[i].substr(0, 40) + "' is not a face vertex (v, v/vt, v//vn or v/vt/vn)");
+          errno = 0;
+          const long long index = std::strtoll(c.c_str(), nullptr, 10);
+          if (errno == ERANGE || index < -2147483647 || index > 2147483647)
+            throw file_error(path, where + "face index " + c.substr(0, 40) + " is out of range");
+        }
+      }
+    }
+  }
+}
+
 }  // namespace
 
 Mesh read_obj(const std::string& path, bool flip_tex_coords) {
   const std::string text = read_input_file(path);
+  check_obj_numbers(path, text);
   tinyobj::ObjReaderConfig config;
   config.triangulate = false;  // fans below: tinyobjloader's polygon triangulation trusts its input
   config.vertex_color = false;
@@ -283,8 +344,14 @@ Mesh read_ply(const std::string& path) {
         throw file_error(path, "unknown PLY format '" + f + "'");
     } else if (word == "element") {
       PlyElement e;
-      s >> e.name >> e.count;
-      if (!s) throw file_error(path, "malformed PLY element line '" + line + "'");
+      std::string count;
+      s >> e.name >> count;
+      // Read as text: an unsigned stream read takes "-4" for 2^64 − 4.
+      errno = 0;
+      if (!s || count.empty() || count.find_first_not_of("0123456789") != std::string::npos)
+        throw file_error(path, "malformed PLY element line '" + line + "' (the count must be a whole number ≥ 0)");
+      e.count = std::strtoull(count.c_str(), nullptr, 10);
+      if (errno == ERANGE) throw file_error(path, "PLY element count " + count + " is out of range");
       limits::require_at_most(path, "PLY element count", e.count, limits::kMeshElements);
       elements.push_back(e);
     } else if (word == "property") {
@@ -298,6 +365,8 @@ Mesh read_ply(const std::string& path) {
         p.list = true;
         if (!ply_type(count_type, p.count_type) || !ply_type(item_type, p.type))
           throw file_error(path, "unknown PLY list types in '" + line + "'");
+        if (p.count_type == PlyType::F32 || p.count_type == PlyType::F64)
+          throw file_error(path, "PLY list count type '" + count_type + "' is not an integer type in '" + line + "'");
       } else {
         s >> p.name;
         if (!ply_type(type, p.type)) throw file_error(path, "unknown PLY property type '" + type + "'");

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -16,6 +17,7 @@
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
 #include "engine/io/image_io.h"
+#include "engine/scene/mesh_io.h"
 #include "engine/scene/scene_load.h"
 
 namespace bl {
@@ -38,6 +40,11 @@ std::string gltf_json_text(const std::string& path, bool binary) {
   std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
   if (!binary) return bytes;
   if (bytes.size() < 20 || bytes.compare(0, 4, "glTF") != 0) throw file_error(path, "invalid glTF: not a binary glTF");
+  // Version 1 GLB files lay their chunks out differently; tinygltf would read them as version 2.
+  uint32_t version = 0;
+  std::memcpy(&version, bytes.data() + 4, 4);
+  if (version != 2)
+    throw file_error(path, "invalid glTF: binary glTF version " + std::to_string(version) + " (expected 2)");
   uint32_t length = 0;
   std::memcpy(&length, bytes.data() + 12, 4);
   if (length > bytes.size() - 20)
@@ -48,11 +55,9 @@ std::string gltf_json_text(const std::string& path, bool binary) {
 // A file that requires an extension we do not implement (Draco or meshopt compression, ...) is
 // refused by name before tinygltf reads it: its buffers would otherwise fail with messages about
 // missing files or buffer views.
-void check_required_extensions(const std::string& path, const std::string& json_text) {
+void check_required_extensions(const std::string& path, const nlohmann::json& doc) {
   static const std::set<std::string> implemented = {"KHR_mesh_quantization", "KHR_texture_transform",
                                                     "KHR_materials_emissive_strength"};
-  const nlohmann::json doc = nlohmann::json::parse(json_text, nullptr, false);
-  if (doc.is_discarded() || !doc.is_object()) return;  // tinygltf reports the syntax error
   const auto it = doc.find("extensionsRequired");
   if (it == doc.end()) return;
   if (!it->is_array()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
@@ -61,6 +66,21 @@ void check_required_extensions(const std::string& path, const std::string& json_
     if (implemented.count(name.get<std::string>())) continue;
     throw file_error(path, "requires the glTF extension '" + name.get<std::string>().substr(0, 100) +
                                "', which backlight does not support");
+  }
+}
+
+// A perspective camera's aspectRatio is optional; tinygltf reads an absent one and an explicit 0
+// alike (as 0), so an explicit value that is not positive is caught in the JSON itself.
+void check_camera_aspect_ratios(const std::string& path, const nlohmann::json& doc) {
+  const auto cameras = doc.find("cameras");
+  if (cameras == doc.end() || !cameras->is_array()) return;  // tinygltf reports a malformed list
+  for (size_t i = 0; i < cameras->size(); ++i) {
+    const nlohmann::json& camera = (*cameras)[i];
+    if (!camera.is_object() || !camera.contains("perspective") || !camera["perspective"].is_object()) continue;
+    const nlohmann::json& perspective = camera["perspective"];
+    const auto aspect = perspective.find("aspectRatio");
+    if (aspect != perspective.end() && !(aspect->is_number() && aspect->get<double>() > 0))
+      throw file_error(path, "camera " + std::to_string(i) + ": aspectRatio must be a positive number");
   }
 }
 
@@ -119,7 +139,11 @@ tinygltf::Model read_model(const std::string& path) {
   // tinygltf's JSON parser recurses without a bound (60k-deep `extras` overflow the stack).
   const std::string json_text = gltf_json_text(path, ext == ".glb");
   limits::check_json_depth(path, json_text);
-  check_required_extensions(path, json_text);
+  const nlohmann::json doc = nlohmann::json::parse(json_text, nullptr, false);
+  if (!doc.is_discarded() && doc.is_object()) {  // else tinygltf reports the syntax error
+    check_required_extensions(path, doc);
+    check_camera_aspect_ratios(path, doc);
+  }
   bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
                           : loader.LoadASCIIFromFile(&model, &err, &warn, path);
   if (!ok || !err.empty())
@@ -127,19 +151,41 @@ tinygltf::Model read_model(const std::string& path) {
   return model;
 }
 
-Transform node_local(const tinygltf::Node& node) {
+// A node's local transform: its matrix, or T · R · S. The specification's constraints are checked
+// rather than the values used as they come: a matrix must be affine (decomposable into TRS) and
+// a rotation a unit quaternion (an unnormalized one would scale the mesh by its squared length).
+Transform node_local(const tinygltf::Node& node, int index, const std::string& path) {
+  const std::string what = "node " + std::to_string(index) + " ('" + node.name.substr(0, 100) + "')";
+  auto check = [&](const std::vector<double>& values, size_t size, const char* name) {
+    if (!values.empty() && values.size() != size)
+      throw file_error(path, what + ": " + name + " needs " + std::to_string(size) + " numbers, not " +
+                                 std::to_string(values.size()));
+    for (double v : values)
+      if (!std::isfinite(v)) throw file_error(path, what + ": " + name + " holds a non-finite value");
+  };
+  check(node.matrix, 16, "matrix");
+  check(node.scale, 3, "scale");
+  check(node.rotation, 4, "rotation");
+  check(node.translation, 3, "translation");
   Transform t;
   if (node.matrix.size() == 16) {
     // glTF matrices are column-major.
     for (int r = 0; r < 4; ++r)
       for (int c = 0; c < 4; ++c) t.m[r][c] = float(node.matrix[size_t(c * 4 + r)]);
+    if (t.m[3][0] != 0.f || t.m[3][1] != 0.f || t.m[3][2] != 0.f || t.m[3][3] != 1.f)
+      throw file_error(path, what + ": matrix is not affine (its last row must be 0, 0, 0, 1)");
     return t;
   }
   if (node.scale.size() == 3) t = Transform::scale({float(node.scale[0]), float(node.scale[1]), float(node.scale[2])});
   if (node.rotation.size() == 4) {
+    const double norm = std::sqrt(node.rotation[0] * node.rotation[0] + node.rotation[1] * node.rotation[1] +
+                                  node.rotation[2] * node.rotation[2] + node.rotation[3] * node.rotation[3]);
+    if (!(std::abs(norm - 1.0) <= 1e-3))
+      throw file_error(path, what + ": rotation is not a unit quaternion (its length is " + std::to_string(norm) + ")");
+    // Exporters round to a few digits: the small drift tolerated above is normalized away.
+    const float x = float(node.rotation[0] / norm), y = float(node.rotation[1] / norm),
+                z = float(node.rotation[2] / norm), w = float(node.rotation[3] / norm);
     // Unit quaternion (x, y, z, w) → rotation matrix.
-    float x = float(node.rotation[0]), y = float(node.rotation[1]), z = float(node.rotation[2]),
-          w = float(node.rotation[3]);
     Transform r;
     r.m[0][0] = 1 - 2 * (y * y + z * z);
     r.m[0][1] = 2 * (x * y - z * w);
@@ -158,7 +204,9 @@ Transform node_local(const tinygltf::Node& node) {
 }
 
 // The bytes of accessor `index` whose elements are `element_size` bytes: every index on the way
-// (accessor, buffer view, buffer) and the extent of the last element are checked.
+// (accessor, buffer view, buffer) is checked, and the last element must end inside the buffer view
+// (which must end inside its buffer), as the specification requires; a stride shorter than an
+// element would overlap the elements.
 struct AccessorBytes {
   const unsigned char* data;
   size_t stride, count;
@@ -173,16 +221,23 @@ AccessorBytes accessor_bytes(const tinygltf::Model& model, int index, size_t ele
   if (view.buffer < 0 || size_t(view.buffer) >= model.buffers.size())
     throw file_error(path, "buffer view references a missing buffer");
   const auto& buf = model.buffers[size_t(view.buffer)];
+  // tinygltf reads an absent byteStride as 0 and refuses one that is not a multiple of 4 up to 252.
+  if (view.byteStride && view.byteStride < element_size)
+    throw file_error(path, what + ": byteStride " + std::to_string(view.byteStride) + " of buffer view " +
+                               std::to_string(acc.bufferView) + " is less than the element size (" +
+                               std::to_string(element_size) + " bytes)");
   const uint64_t stride = view.byteStride ? view.byteStride : element_size;
   // Every offset and extent in 64-bit checked arithmetic: counts near 2^64 must not wrap around.
   limits::require_at_most(path, what + ": element count", acc.count, 3 * limits::kMeshElements);
-  uint64_t start = 0, span = 0, end = 0;
-  bool fits = limits::checked_add(view.byteOffset, acc.byteOffset, start);
+  uint64_t view_end = 0, span = 0, end_in_view = 0;
+  if (!limits::checked_add(view.byteOffset, view.byteLength, view_end) || view_end > buf.data.size())
+    throw file_error(path, "buffer view " + std::to_string(acc.bufferView) + " reads past the end of its buffer");
+  bool fits = true;
   if (acc.count > 0)
-    fits = fits && limits::checked_mul(stride, acc.count - 1, span) && limits::checked_add(span, element_size, span);
-  fits = fits && limits::checked_add(start, span, end);
-  if (!fits || end > buf.data.size()) throw file_error(path, what + " reads past the end of its buffer");
-  return {buf.data.data() + start, size_t(stride), size_t(acc.count)};
+    fits = limits::checked_mul(stride, acc.count - 1, span) && limits::checked_add(span, element_size, span);
+  fits = fits && limits::checked_add(acc.byteOffset, span, end_in_view);
+  if (!fits || end_in_view > view.byteLength) throw file_error(path, what + " reads past the end of its buffer view");
+  return {buf.data.data() + view.byteOffset + acc.byteOffset, size_t(stride), size_t(acc.count)};
 }
 
 // `bytes` bytes at `offset` into buffer view `view_index`, bounds-checked like accessor_bytes
@@ -430,13 +485,90 @@ uint64_t accessor_count(const tinygltf::Model& model, int index) {
   return index >= 0 && size_t(index) < model.accessors.size() ? uint64_t(model.accessors[size_t(index)].count) : 0;
 }
 
-// Every triangle primitive of the default scene in world space; vertex colours (COLOR_0) only
-// when `vertex_colors` (they belong to the file's materials, which a JSON scene's glTF shape
-// does not use).
+const char* component_type_name(int type) {
+  switch (type) {
+    case TINYGLTF_COMPONENT_TYPE_BYTE:
+      return "BYTE";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+      return "UNSIGNED_BYTE";
+    case TINYGLTF_COMPONENT_TYPE_SHORT:
+      return "SHORT";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT:
+      return "UNSIGNED_SHORT";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT:
+      return "UNSIGNED_INT";
+    case TINYGLTF_COMPONENT_TYPE_FLOAT:
+      return "FLOAT";
+  }
+  return "unknown";
+}
+
+// The component types the specification allows for POSITION, NORMAL and TEXCOORD_n: floats, and
+// normalized unsigned bytes and shorts for texture coordinates; KHR_mesh_quantization adds
+// integer positions and uvs and normalized integer normals. Any other type would be decoded as
+// raw integers, e.g. positions in units of 1/65535 read as thousands.
+void check_attribute_type(const tinygltf::Model& model, const std::string& attribute, int index, bool quantized,
+                          const std::string& mesh, const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size()) return;  // read_floats reports it
+  const auto& acc = model.accessors[size_t(index)];
+  const int type = acc.componentType;
+  if (type == TINYGLTF_COMPONENT_TYPE_FLOAT) return;
+  const bool integer = type == TINYGLTF_COMPONENT_TYPE_BYTE || type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                       type == TINYGLTF_COMPONENT_TYPE_SHORT || type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT;
+  const bool signed_type = type == TINYGLTF_COMPONENT_TYPE_BYTE || type == TINYGLTF_COMPONENT_TYPE_SHORT;
+  bool core = false, extension = false;
+  if (attribute == "POSITION") {
+    extension = integer;
+  } else if (attribute == "NORMAL") {
+    extension = signed_type && acc.normalized;
+  } else {  // TEXCOORD_n
+    core = integer && !signed_type && acc.normalized;
+    extension = integer;
+  }
+  if (core || (quantized && extension)) return;
+  throw file_error(path, "mesh '" + mesh.substr(0, 100) + "': " + attribute + " (accessor " + std::to_string(index) +
+                             "): component type " + component_type_name(type) +
+                             (acc.normalized ? " (normalized)" : "") +
+                             (extension ? " needs the KHR_mesh_quantization extension" : " is not allowed"));
+}
+
+// The triangles of a primitive of mode TRIANGLES, TRIANGLE_STRIP or TRIANGLE_FAN, as a list. A
+// strip's odd triangles swap their last two vertices so that every triangle keeps the winding of
+// the first (the specification's p_i = {v_i, v_(i+1+i%2), v_(i+2-i%2)}); a fan's triangles share
+// its first vertex.
+std::vector<uint32_t> triangle_list(int mode, const std::vector<uint32_t>& v) {
+  if (mode == TINYGLTF_MODE_TRIANGLES) return v;
+  std::vector<uint32_t> out;
+  for (size_t i = 0; i + 2 < v.size(); ++i) {
+    if (mode == TINYGLTF_MODE_TRIANGLE_FAN)
+      out.insert(out.end(), {v[0], v[i + 1], v[i + 2]});
+    else if (i % 2 == 0)
+      out.insert(out.end(), {v[i], v[i + 1], v[i + 2]});
+    else
+      out.insert(out.end(), {v[i], v[i + 2], v[i + 1]});
+  }
+  return out;
+}
+
+// Every triangle primitive (triangles, strips and fans) of the default scene in world space, as
+// triangle lists; points and lines have no surface and are skipped, with one warning for the
+// file added to `warnings`. Vertex colours (COLOR_0), and the uv set the material's textures
+// need, only when `file_materials` (they belong to the file's materials, which a JSON scene's
+// glTF shape does not use).
 std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const std::string& path,
                                           const Transform& to_world, std::vector<std::pair<Transform, int>>* cameras,
-                                          bool vertex_colors) {
+                                          bool file_materials, std::vector<std::string>& warnings) {
   std::vector<Primitive> out;
+  const auto uses = [&](const char* extension) {
+    const auto& used = model.extensionsUsed;
+    const auto& required = model.extensionsRequired;
+    return std::find(used.begin(), used.end(), extension) != used.end() ||
+           std::find(required.begin(), required.end(), extension) != required.end();
+  };
+  const bool quantized = uses("KHR_mesh_quantization");
+  // Point and line primitives, each counted once however often its mesh is instanced.
+  std::set<std::pair<int, size_t>> unrendered;
+  std::string first_unrendered;
   // Totals over every instance, counted in a first pass that reads nothing: one mesh under
   // thousands of nodes, or one accessor in thousands of primitives, costs its size every time.
   uint64_t total_vertices = 0, total_indices = 0, total_shapes = 0;
@@ -447,27 +579,44 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
       throw file_error(path, "invalid node hierarchy: nesting exceeds the limit of " +
                                  std::to_string(limits::kNodeDepth) + " levels (or a cycle)");
     const auto& node = model.nodes[size_t(ni)];
-    Transform world = parent * node_local(node);
+    Transform world = parent * node_local(node, ni, path);
     if (node.camera >= 0 && cameras && !counting) cameras->push_back({world, node.camera});
     if (node.mesh >= 0) {
       if (size_t(node.mesh) >= model.meshes.size()) throw file_error(path, "node references a missing mesh");
       const auto& gm = model.meshes[size_t(node.mesh)];
       for (size_t pi = 0; pi < gm.primitives.size(); ++pi) {
         const auto& prim = gm.primitives[pi];
-        if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
+        const std::string where = "mesh '" +
+                                  (gm.name.empty() ? "mesh" + std::to_string(node.mesh) : gm.name.substr(0, 100)) +
+                                  "' primitive " + std::to_string(pi);
+        const int mode = prim.mode == -1 ? TINYGLTF_MODE_TRIANGLES : prim.mode;  // -1: absent
+        if (mode < TINYGLTF_MODE_POINTS || mode > TINYGLTF_MODE_TRIANGLE_FAN)
+          throw file_error(path, where + ": invalid mode " + std::to_string(prim.mode) + " (expected 0 to 6)");
+        if (mode < TINYGLTF_MODE_TRIANGLES) {
+          if (unrendered.insert({node.mesh, pi}).second && first_unrendered.empty()) first_unrendered = where;
+          continue;
+        }
+        if (prim.material < -1)
+          throw file_error(path, where + ": material " + std::to_string(prim.material) + " is out of range");
         auto pos_it = prim.attributes.find("POSITION");
         if (pos_it == prim.attributes.end()) throw file_error(path, "primitive without POSITION");
         if (counting) {
           const uint64_t vertices = accessor_count(model, pos_it->second);
+          const uint64_t corners = prim.indices >= 0 ? accessor_count(model, prim.indices) : vertices;
           limits::add_to_total(path, "mesh instance count", total_shapes, 1, limits::kShapes);
           limits::add_to_total(path, "total vertex count (all mesh instances)", total_vertices, vertices,
                                limits::kSceneElements);
           limits::add_to_total(path, "total triangle count (all mesh instances)", total_indices,
-                               prim.indices >= 0 ? accessor_count(model, prim.indices) / 3 : vertices / 3,
+                               mode == TINYGLTF_MODE_TRIANGLES ? corners / 3
+                               : corners < 3                   ? 0
+                                                               : corners - 2,
                                limits::kSceneElements);
           continue;
         }
         Primitive p;
+        for (const auto& [attribute, index] : prim.attributes)
+          if (attribute == "POSITION" || attribute == "NORMAL" || attribute.rfind("TEXCOORD_", 0) == 0)
+            check_attribute_type(model, attribute, index, quantized, gm.name, path);
         std::vector<float> pos = read_floats(model, pos_it->second, 3, path);
         for (size_t i = 0; i + 2 < pos.size(); i += 3)
           p.mesh.positions.push_back(world.point({pos[i], pos[i + 1], pos[i + 2]}));
@@ -476,20 +625,25 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
           for (size_t i = 0; i + 2 < nrm.size(); i += 3)
             p.mesh.normals.push_back(world.normal({nrm[i], nrm[i + 1], nrm[i + 2]}));
         }
-        if (auto it =
-                prim.attributes.find("TEXCOORD_" + std::to_string(material_tex_coord(model, prim.material, path)));
-            it != prim.attributes.end()) {
+        const std::string uv_set = "TEXCOORD_" + std::to_string(material_tex_coord(model, prim.material, path));
+        if (auto it = prim.attributes.find(uv_set); it != prim.attributes.end()) {
           std::vector<float> uv = read_floats(model, it->second, 2, path);
           apply_texture_transform(model, prim.material, uv, path);
           for (size_t i = 0; i + 1 < uv.size(); i += 2) p.mesh.uvs.push_back({uv[i], uv[i + 1]});
+        } else if (file_materials && prim.material >= 0 && size_t(prim.material) < model.materials.size() &&
+                   !material_textures(model.materials[size_t(prim.material)]).empty()) {
+          // Without its uv set the material's textures would be sampled at one point.
+          throw file_error(path, where + ": its material's textures read " + uv_set + ", which it does not have");
         }
-        if (auto it = prim.attributes.find("COLOR_0"); vertex_colors && it != prim.attributes.end())
+        if (auto it = prim.attributes.find("COLOR_0"); file_materials && it != prim.attributes.end())
           p.mesh.colors = read_vertex_colors(model, it->second, gm.name, path);
+        std::vector<uint32_t> corners;
         if (prim.indices >= 0) {
-          p.mesh.indices = read_indices(model, prim.indices, path);
+          corners = read_indices(model, prim.indices, path);
         } else {
-          for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) p.mesh.indices.push_back(i);
+          for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) corners.push_back(i);
         }
+        p.mesh.indices = triangle_list(mode, corners);
         if ((!p.mesh.normals.empty() && p.mesh.normals.size() != p.mesh.positions.size()) ||
             (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()) ||
             (!p.mesh.colors.empty() && p.mesh.colors.size() != p.mesh.positions.size()))
@@ -546,6 +700,11 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
   for (int n : roots) visit(n, to_world, 0);
   counting = false;
   for (int n : roots) visit(n, to_world, 0);
+  if (!unrendered.empty())
+    warnings.push_back("backlight: " + path + ": warning: " + first_unrendered + ": points/lines are not rendered" +
+                       (unrendered.size() > 1
+                            ? " (nor are " + std::to_string(unrendered.size() - 1) + " more point/line primitives)"
+                            : ""));
   return out;
 }
 
@@ -581,8 +740,9 @@ std::string sanitize(std::string name) {
 
 }  // namespace
 
-std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world);
-std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path);
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world,
+                                             std::vector<std::string>& warnings);
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::vector<std::string>& warnings);
 
 // Every index in the file is checked where it is used; `.at()` backs that up, and an index that
 // still slips through becomes this one-line error instead of an internal one.
@@ -595,27 +755,42 @@ auto guarded(const std::string& path, F&& load) {
   }
 }
 
+std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world,
+                                   std::vector<std::string>& warnings) {
+  return guarded(path, [&] { return load_gltf_meshes_unguarded(path, to_world, warnings); });
+}
+
+// Warnings are printed once the file has loaded, so that a file that fails gets its one error
+// line only (as load_xml_scene does).
 std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world) {
-  return guarded(path, [&] { return load_gltf_meshes_unguarded(path, to_world); });
-}
-
-std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
-  return guarded(path, [&] { return load_gltf_scene_unguarded(path); });
-}
-
-std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world) {
-  tinygltf::Model model = read_model(path);
-  std::vector<Mesh> meshes;
-  for (auto& p : collect_primitives(model, path, to_world, nullptr, false)) meshes.push_back(std::move(p.mesh));
+  std::vector<std::string> warnings;
+  std::vector<Mesh> meshes = load_gltf_meshes(path, to_world, warnings);
+  for (const std::string& w : warnings) std::fprintf(stderr, "%s\n", w.c_str());
   return meshes;
 }
 
-std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
+std::unique_ptr<Scene> load_gltf_scene(const std::string& path) {
+  std::vector<std::string> warnings;
+  std::unique_ptr<Scene> scene = guarded(path, [&] { return load_gltf_scene_unguarded(path, warnings); });
+  for (const std::string& w : warnings) std::fprintf(stderr, "%s\n", w.c_str());
+  return scene;
+}
+
+std::vector<Mesh> load_gltf_meshes_unguarded(const std::string& path, const Transform& to_world,
+                                             std::vector<std::string>& warnings) {
+  tinygltf::Model model = read_model(path);
+  std::vector<Mesh> meshes;
+  for (auto& p : collect_primitives(model, path, to_world, nullptr, false, warnings))
+    meshes.push_back(std::move(p.mesh));
+  return meshes;
+}
+
+std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::vector<std::string>& warnings) {
   tinygltf::Model model = read_model(path);
   auto scene = std::make_unique<Scene>();
   scene->source = path;
   std::vector<std::pair<Transform, int>> cameras;
-  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras, true);
+  std::vector<Primitive> prims = collect_primitives(model, path, Transform(), &cameras, true, warnings);
   if (prims.empty()) throw file_error(path, "no triangle meshes in the default scene");
   // Each material used gets its own copy of its base colour texture (3 floats per texel): many
   // materials naming one small, highly compressed image must not add up past the limit, so the
@@ -679,6 +854,11 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
       throw file_error(path, "texture references a missing sampler");
     const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
+    if (tex.sampler >= 0)
+      for (const int w : {model.samplers[size_t(tex.sampler)].wrapS, model.samplers[size_t(tex.sampler)].wrapT})
+        if (w != 33071 && w != 33648 && w != 10497)
+          throw file_error(path, "sampler " + std::to_string(tex.sampler) + ": wrap mode " + std::to_string(w) +
+                                     " is not one of 33071 (clamp), 33648 (mirrored repeat) and 10497 (repeat)");
     // CLAMP_TO_EDGE; mirrored falls back to repeat
     return TextureImage{&img, wrap == 33071 ? Wrap::Clamp : Wrap::Repeat};
   };
@@ -795,8 +975,14 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
       const auto& gm = model.materials[size_t(p.material)];
       double strength = 1.0;
       if (auto it = gm.extensions.find("KHR_materials_emissive_strength");
-          it != gm.extensions.end() && it->second.Has("emissiveStrength"))
-        strength = it->second.Get("emissiveStrength").GetNumberAsDouble();
+          it != gm.extensions.end() && it->second.Has("emissiveStrength")) {
+        const tinygltf::Value& v = it->second.Get("emissiveStrength");
+        // GetNumberAsDouble reads a string or an object as 0, which would turn the light off.
+        strength = v.IsNumber() ? v.GetNumberAsDouble() : -1.0;
+        if (!(strength >= 0 && std::isfinite(strength)))
+          throw file_error(path, "material '" + gm.name.substr(0, 100) +
+                                     "': KHR_materials_emissive_strength emissiveStrength must be a number ≥ 0");
+      }
       std::vector<float> e;
       for (size_t c = 0; c < 3 && c < gm.emissiveFactor.size(); ++c)
         e.push_back(float(gm.emissiveFactor[c] * strength));
@@ -830,10 +1016,13 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path) {
     if (ci < 0 || size_t(ci) >= model.cameras.size()) throw file_error(path, "node references a missing camera");
     const auto& gc = model.cameras[size_t(ci)];
     if (gc.type != "perspective") continue;
-    if (!(gc.perspective.yfov > 0 && gc.perspective.yfov < M_PI))
-      throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π)");
+    // The JSON scenes' limit on fov: the film plane of a wider view is numerically unusable.
+    if (!(gc.perspective.yfov > 0 && gc.perspective.yfov <= 179.9 * M_PI / 180.0))
+      throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π) and at most 179.9°");
     if (gc.perspective.aspectRatio < 0)
       throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
+    if (!(gc.perspective.znear > 0))
+      throw file_error(path, "camera " + std::to_string(ci) + ": znear must be positive");
     Camera c;
     c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
     c.fov_axis = Camera::FovAxis::Y;  // glTF's yfov

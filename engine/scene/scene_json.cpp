@@ -1,6 +1,7 @@
 // JSON scene loader. Strict: every key is known, every value checked, errors carry the file and
 // the JSON pointer (or line:column for syntax errors) — the format is documented in scenes/README.md.
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -64,6 +65,8 @@ struct Loader {
   Scene& scene;
   // Running totals over all shapes (a glTF shape listed many times costs its size every time).
   uint64_t total_vertices = 0, total_triangles = 0, total_shapes = 0;
+  // Warnings of the files read (a glTF's skipped points and lines), printed once the scene loaded.
+  std::vector<std::string> warnings;
 
   std::string resolve(const std::string& f) const { return (dir / f).lexically_normal().string(); }
 
@@ -307,6 +310,9 @@ struct Loader {
           t.m[i][k] = row[size_t(k)].get<float>();
         }
       }
+      // Points are transformed as affine (w stays 1): a projective last row would be dropped.
+      if (t.m[3][0] != 0.f || t.m[3][1] != 0.f || t.m[3][2] != 0.f || t.m[3][3] != 1.f)
+        n.fail_at("matrix", "the last row must be [0, 0, 0, 1] (transforms are affine)");
       n.finish();
       return t;
     }
@@ -389,7 +395,7 @@ struct Loader {
     } else if (type == "mesh") {
       parts.push_back(inline_mesh(n));
     } else if (type == "gltf") {
-      parts = load_gltf_meshes(resolve(n.string("file")), Transform());
+      parts = load_gltf_meshes(resolve(n.string("file")), Transform(), warnings);
       if (parts.empty()) n.fail_at("file", "the glTF file has no triangle meshes");
     } else if (type == "obj") {
       parts.push_back(read_obj(resolve(n.string("file")), n.boolean("flip_tex_coords", true)));
@@ -507,6 +513,8 @@ std::unique_ptr<Scene> build_json_scene(const json& root, const std::string& pat
   loader.load(root);
   scene->add_geometry_params();
   scene->prepare();
+  // A scene that fails to load gets its one error line only; one that loads, its warnings.
+  for (const std::string& w : loader.warnings) std::fprintf(stderr, "%s\n", w.c_str());
   return scene;
 }
 

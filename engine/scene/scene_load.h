@@ -24,6 +24,10 @@ std::unique_ptr<Scene> build_json_scene(const nlohmann::json& root, const std::s
 // the file's materials and vertex colours (COLOR_0, part of a glTF material's base colour) are
 // not read.
 std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world);
+// The same, handing its warnings (point and line primitives it skipped) to the caller, which
+// prints them once its own load has succeeded: a scene that fails to load gets its one error line.
+std::vector<Mesh> load_gltf_meshes(const std::string& path, const Transform& to_world,
+                                   std::vector<std::string>& warnings);
 
 // Finishes a mesh built in object space: transforms to world, fixes winding for mirroring
 // transforms, optionally flips normals, pads positions for Embree and checks it.

@@ -7,11 +7,13 @@
 
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -628,4 +630,300 @@ TEST_CASE("metallic-roughness textures become roughness and metallic bitmaps", "
     CHECK(std::string(e.what()).find("emissive and metallic-roughness textures use different uv sets") !=
           std::string::npos);
   }
+}
+
+namespace {
+// The message of the InputError loading `path` throws ("" when it loads).
+std::string load_error(const std::string& path) {
+  try {
+    load_scene(path);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// scenes/gltf/scene.gltf with `edit` applied to its JSON, written next to copies of its buffer and
+// texture in `tmp`.
+std::string bundled_variant(const TempDir& tmp, const std::string& name,
+                            const std::function<void(nlohmann::json&)>& edit) {
+  const fs::path dir = fs::path(BL_SOURCE_DIR) / "scenes" / "gltf";
+  for (const char* f : {"scene.bin", "checker.png"}) fs::copy_file(dir / f, tmp(f), fs::copy_options::skip_existing);
+  std::ifstream in(dir / "scene.gltf");
+  nlohmann::json gltf = nlohmann::json::parse(in);
+  edit(gltf);
+  std::ofstream(tmp(name)) << gltf.dump();
+  return tmp(name);
+}
+
+// What `f` writes to stderr (file descriptor 2) while it runs.
+template <class F>
+std::string stderr_of(const TempDir& tmp, F&& f) {
+  std::fflush(stderr);
+  const int saved = ::dup(2);
+  std::FILE* capture = std::fopen(tmp("stderr.txt").c_str(), "w+");
+  ::dup2(::fileno(capture), 2);
+  auto restore = [&] {
+    std::fflush(stderr);
+    ::dup2(saved, 2);
+    ::close(saved);
+  };
+  try {
+    f();
+  } catch (...) {
+    restore();
+    std::fclose(capture);
+    throw;
+  }
+  restore();
+  std::fclose(capture);
+  std::ifstream text(tmp("stderr.txt"));
+  return std::string((std::istreambuf_iterator<char>(text)), std::istreambuf_iterator<char>());
+}
+}  // namespace
+
+TEST_CASE("glTF input the specification forbids is a one-line error naming the file", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  struct Case {
+    const char* name;
+    std::function<void(json&)> edit;
+    const char* message;
+  };
+  const Case cases[] = {
+      // Accessors inside their buffer views, with strides that hold an element.
+      {"stride16", [](json& s) { s["bufferViews"][0]["byteStride"] = 16; },
+       "accessor 0 reads past the end of its buffer view"},
+      {"stride4", [](json& s) { s["bufferViews"][0]["byteStride"] = 4; },
+       "byteStride 4 of buffer view 0 is less than the element size (12 bytes)"},
+      {"offset", [](json& s) { s["accessors"][0]["byteOffset"] = 4; },
+       "accessor 0 reads past the end of its buffer view"},
+      // Node transforms.
+      {"rot100",
+       [](json& s) {
+         s["nodes"][2]["rotation"] = {0, 100, 0, 0};
+       },
+       "node 2 ('gold_cube'): rotation is not a unit quaternion"},
+      {"rot0",
+       [](json& s) {
+         s["nodes"][2]["rotation"] = {0, 0, 0, 0};
+       },
+       "rotation is not a unit quaternion"},
+      {"matrix15", [](json& s) { s["nodes"][2]["matrix"] = std::vector<double>(15, 1.0); },
+       "node 2 ('gold_cube'): matrix needs 16 numbers, not 15"},
+      {"rotation3",
+       [](json& s) {
+         s["nodes"][2]["rotation"] = {0, 0, 1};
+       },
+       "rotation needs 4 numbers, not 3"},
+      {"translation2",
+       [](json& s) {
+         s["nodes"][2]["translation"] = {0, 1};
+       },
+       "translation needs 3 numbers, not 2"},
+      {"scale4",
+       [](json& s) {
+         s["nodes"][3]["scale"] = {1, 1, 1, 1};
+       },
+       "scale needs 3 numbers, not 4"},
+      {"projective",
+       [](json& s) {
+         s["nodes"][2].erase("rotation");
+         s["nodes"][2].erase("translation");
+         s["nodes"][2]["matrix"] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0.5, 0, 0, 0, 1};  // column-major
+       },
+       "matrix is not affine"},
+      // Materials, attributes, samplers.
+      {"strength",
+       [](json& s) { s["materials"][3]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] = -2; },
+       "material 'lamp': KHR_materials_emissive_strength emissiveStrength must be a number"},
+      {"strength_text",
+       [](json& s) { s["materials"][3]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] = "x"; },
+       "emissiveStrength must be a number"},
+      {"position_ushort", [](json& s) { s["accessors"][0]["componentType"] = 5123; },
+       "mesh 'ground': POSITION (accessor 0): component type UNSIGNED_SHORT needs the KHR_mesh_quantization "
+       "extension"},
+      {"normal_ubyte",
+       [](json& s) {
+         s["accessors"][1]["componentType"] = 5121;
+         s["extensionsUsed"] = {"KHR_mesh_quantization"};
+       },
+       "NORMAL (accessor 1): component type UNSIGNED_BYTE is not allowed"},
+      {"wrap", [](json& s) { s["samplers"][0]["wrapT"] = 12345; }, "sampler 0: wrap mode 12345 is not one of"},
+      {"material", [](json& s) { s["meshes"][0]["primitives"][0]["material"] = -5; },
+       "mesh 'ground' primitive 0: material -5 is out of range"},
+      {"texcoord", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"] = 1; },
+       "mesh 'ground' primitive 0: its material's textures read TEXCOORD_1, which it does not have"},
+      {"mode", [](json& s) { s["meshes"][0]["primitives"][0]["mode"] = 7; },
+       "mesh 'ground' primitive 0: invalid mode 7 (expected 0 to 6)"},
+      // Cameras.
+      {"aspect0", [](json& s) { s["cameras"][0]["perspective"]["aspectRatio"] = 0; },
+       "camera 0: aspectRatio must be a positive number"},
+      {"znear0", [](json& s) { s["cameras"][0]["perspective"]["znear"] = 0; }, "camera 0: znear must be positive"},
+      {"yfov", [](json& s) { s["cameras"][0]["perspective"]["yfov"] = 3.14; }, "at most 179.9°"},
+  };
+  for (const Case& c : cases) {
+    CAPTURE(c.name);
+    const std::string e = load_error(bundled_variant(tmp, std::string(c.name) + ".gltf", c.edit));
+    CHECK_THAT(e, Catch::Contains(c.message) && Catch::Contains(std::string(c.name) + ".gltf: "));
+    CHECK(e.find('\n') == std::string::npos);
+  }
+  // What the specification allows still loads: a stride of exactly one element, integer
+  // positions with KHR_mesh_quantization, a rotation rounded to six digits (normalized, so it does
+  // not scale the mesh).
+  CHECK(load_error(bundled_variant(tmp, "stride12.gltf", [](json& s) {
+          s["bufferViews"][0]["byteStride"] = 12;
+        })).empty());
+  const auto gold_cube = [&](const std::string& name, double scale) {
+    auto scene = load_scene(bundled_variant(tmp, name, [&](json& s) {
+      for (auto& q : s["nodes"][2]["rotation"]) q = q.get<double>() * scale;
+    }));
+    REQUIRE(scene->meshes.size() >= 2);
+    return scene->meshes[1].positions;
+  };
+  const std::vector<Vec3f> unit = gold_cube("unit.gltf", 1.0), drift = gold_cube("drift.gltf", 1.0005);
+  REQUIRE(unit.size() == drift.size());
+  for (size_t v = 0; v < unit.size(); ++v) CHECK(length(unit[v] - drift[v]) < 1e-5f);
+}
+
+namespace {
+// A 2 × 2 quad facing +z drawn as one primitive of `mode` (4 TRIANGLES as two triangles, 5 a
+// strip, 6 a fan), indexed or not, plus a LINES primitive when `lines`.
+std::string write_mode_quad(const TempDir& tmp, const std::string& name, int mode, bool indexed, bool lines = false) {
+  using nlohmann::json;
+  // Corner order per mode: a strip zigzags, a fan goes round.
+  const std::vector<std::vector<float>> corners =
+      mode == 5 ? std::vector<std::vector<float>>{{-1, -1, 0}, {1, -1, 0}, {-1, 1, 0}, {1, 1, 0}}
+                : std::vector<std::vector<float>>{{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  std::vector<float> pos;
+  std::vector<uint16_t> idx;
+  if (mode == 4 && !indexed) {
+    for (int c : {0, 1, 2, 0, 2, 3}) pos.insert(pos.end(), corners[size_t(c)].begin(), corners[size_t(c)].end());
+  } else {
+    for (const auto& c : corners) pos.insert(pos.end(), c.begin(), c.end());
+    idx = mode == 4 ? std::vector<uint16_t>{0, 1, 2, 0, 2, 3} : std::vector<uint16_t>{0, 1, 2, 3};
+  }
+  const size_t pos_bytes = pos.size() * 4, idx_bytes = idx.size() * 2;
+  std::ofstream bin(tmp(name + ".bin"), std::ios::binary);
+  bin.write(reinterpret_cast<const char*>(pos.data()), std::streamsize(pos_bytes));
+  bin.write(reinterpret_cast<const char*>(idx.data()), std::streamsize(idx_bytes));
+  bin.close();
+  json prim = {{"attributes", {{"POSITION", 0}}}, {"mode", mode}};
+  if (indexed) prim["indices"] = 1;
+  json prims = {prim};
+  if (lines) prims.push_back({{"attributes", {{"POSITION", 0}}}, {"mode", 1}});
+  const json gltf = {{"asset", {{"version", "2.0"}}},
+                     {"scene", 0},
+                     {"scenes", {{{"nodes", {0}}}}},
+                     {"nodes", {{{"mesh", 0}}}},
+                     {"meshes", {{{"name", "quad"}, {"primitives", prims}}}},
+                     {"buffers", {{{"uri", name + ".bin"}, {"byteLength", pos_bytes + idx_bytes}}}},
+                     {"bufferViews",
+                      {{{"buffer", 0}, {"byteOffset", 0}, {"byteLength", pos_bytes}},
+                       {{"buffer", 0}, {"byteOffset", pos_bytes}, {"byteLength", std::max<size_t>(idx_bytes, 2)}}}},
+                     {"accessors",
+                      {{{"bufferView", 0},
+                        {"componentType", 5126},
+                        {"count", pos.size() / 3},
+                        {"type", "VEC3"},
+                        {"min", {-1, -1, 0}},
+                        {"max", {1, 1, 0}}},
+                       {{"bufferView", 1}, {"componentType", 5123}, {"count", idx.size()}, {"type", "SCALAR"}}}}};
+  std::ofstream(tmp(name)) << gltf.dump();
+  return tmp(name);
+}
+}  // namespace
+
+TEST_CASE("triangle strips and fans become triangles facing one way; points and lines are skipped with a warning",
+          "[gltf]") {
+  TempDir tmp;
+  for (const int mode : {4, 5, 6})
+    for (const bool indexed : {true, false}) {
+      if (mode != 4 && !indexed) continue;  // unindexed strips and fans: below
+      CAPTURE(mode, indexed);
+      auto scene =
+          load_scene(write_mode_quad(tmp, "m" + std::to_string(mode) + (indexed ? "i" : "") + ".gltf", mode, indexed));
+      REQUIRE(scene->meshes.size() == 1);
+      const Mesh& m = scene->meshes[0];
+      REQUIRE(m.triangle_count() == 2);
+      float area = 0.f;
+      for (size_t t = 0; t < 2; ++t) {
+        area += m.triangle_area(t);
+        CHECK(m.face_normals[t].z == Approx(1.f));  // counter-clockwise seen from +z, as drawn
+      }
+      CHECK(area == Approx(4.f));
+    }
+  // Unindexed strips and fans read their vertices in order, like indices 0, 1, 2, ...
+  for (const int mode : {5, 6}) {
+    CAPTURE(mode);
+    const std::string file = write_mode_quad(tmp, "u" + std::to_string(mode) + ".gltf", mode, true);
+    std::ifstream in(file);
+    nlohmann::json j = nlohmann::json::parse(in);
+    j["meshes"][0]["primitives"][0].erase("indices");
+    std::ofstream(file) << j.dump();
+    auto scene = load_scene(file);
+    REQUIRE(scene->meshes[0].triangle_count() == 2);
+    for (size_t t = 0; t < 2; ++t) CHECK(scene->meshes[0].face_normals[t].z == Approx(1.f));
+  }
+  // A mesh with a line primitive: its triangles load, and one warning names the line primitive,
+  // printed after the load (for a scene and for a JSON scene's glTF shape alike).
+  const std::string mixed = write_mode_quad(tmp, "lines.gltf", 4, true, true);
+  std::unique_ptr<Scene> scene;
+  std::string warning = stderr_of(tmp, [&] { scene = load_scene(mixed); });
+  CHECK(scene->meshes.size() == 1);
+  CHECK(warning == "backlight: " + mixed + ": warning: mesh 'quad' primitive 1: points/lines are not rendered\n");
+  const std::string json_scene = tmp("with_gltf.json");
+  std::ofstream(json_scene) << R"({"cameras": [{"name": "c", "origin": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0],
+    "fov": 40, "resolution": [8, 8]}], "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+    "shapes": [{"name": "q", "type": "gltf", "file": "lines.gltf", "material": "m"}],
+    "environment": {"type": "constant", "radiance": [1, 1, 1]}})";
+  warning = stderr_of(tmp, [&] { load_scene(json_scene); });
+  CHECK(warning == "backlight: " + mixed + ": warning: mesh 'quad' primitive 1: points/lines are not rendered\n");
+  // A scene that fails later keeps its one error line: no warning before it.
+  std::ofstream(json_scene) << R"({"cameras": [{"name": "c", "origin": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0],
+    "fov": 40, "resolution": [8, 8]}], "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+    "shapes": [{"name": "q", "type": "gltf", "file": "lines.gltf", "material": "m"},
+               {"name": "r", "type": "rectangle", "material": "nope"}],
+    "environment": {"type": "constant", "radiance": [1, 1, 1]}})";
+  warning = stderr_of(tmp, [&] { CHECK_THROWS_WITH(load_scene(json_scene), Catch::Contains("unknown material")); });
+  CHECK(warning.empty());
+}
+
+TEST_CASE("a JSON transform matrix must be affine", "[gltf][errors]") {
+  TempDir tmp;
+  write_cube(tmp, "cube.gltf");
+  auto scene_with = [&](const std::string& last_row) {
+    std::ofstream(tmp("m.json")) << R"({"cameras": [{"name": "c", "origin": [0, 0, 5], "target": [0, 0, 0],
+      "up": [0, 1, 0], "fov": 40, "resolution": [8, 8]}], "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+      "shapes": [{"name": "s", "type": "gltf", "file": "cube.gltf", "material": "m",
+                  "transform": {"matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], )" +
+                                        last_row + R"(]}}],
+      "environment": {"type": "constant", "radiance": [1, 1, 1]}})";
+    return load_error(tmp("m.json"));
+  };
+  CHECK(scene_with("[0, 0, 0, 1]").empty());
+  for (const char* row : {"[0, 0, 0, 2]", "[0, 0.5, 0, 1]"}) {
+    CAPTURE(row);
+    CHECK_THAT(scene_with(row), Catch::Contains("m.json") && Catch::Contains("/shapes/0/transform/matrix") &&
+                                    Catch::Contains("the last row must be [0, 0, 0, 1]"));
+  }
+}
+
+TEST_CASE("a binary glTF of a version other than 2 is refused", "[gltf][errors]") {
+  TempDir tmp;
+  // The cube's JSON as the JSON chunk of a GLB (its buffer stays the external cube.bin).
+  std::ifstream in(write_cube(tmp, "cube.gltf"));
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  while (text.size() % 4) text += ' ';
+  auto write_glb = [&](const std::string& name, uint32_t version) {
+    const uint32_t header[5] = {0x46546C67u /* glTF */, version, uint32_t(20 + text.size()), uint32_t(text.size()),
+                                0x4E4F534Au /* JSON */};
+    std::ofstream glb(tmp(name), std::ios::binary);
+    glb.write(reinterpret_cast<const char*>(header), sizeof header);
+    glb << text;
+    return tmp(name);
+  };
+  CHECK(load_error(write_glb("v2.glb", 2)).empty());
+  const std::string e = load_error(write_glb("v1.glb", 1));
+  CHECK_THAT(e, Catch::Contains("v1.glb: invalid glTF: binary glTF version 1 (expected 2)"));
 }

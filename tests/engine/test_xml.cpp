@@ -249,6 +249,14 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
       {"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//2 3//1\n", "face refers to normal 2"},
       {"v 0 0 0\n", "no faces"},
       {"v 1e39 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "NaN or infinite"},
+      // tinyobjloader reads these as 0, and wraps an index past 2^31 around to a valid vertex.
+      {"v 0 0 0\nv nan -1 0\nv 0 1 0\nf 1 2 3\n", "line 2: 'nan' in a 'v' line is not a finite number"},
+      {"v 0 0 0\nv abc -1 0\nv 0 1 0\nf 1 2 3\n", "line 2: 'abc' in a 'v' line is not a finite number"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1x\nf 1 2 3\n", "line 4: '1x' in a 'vn' line is not a finite number"},
+      {"v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n", "line 2: a 'v' line needs 3 values"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999\n",
+       "line 4: face index 99999999999999999999 is out of range"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3x\n", "line 4: '3x' is not a face vertex"},
   };
   for (const auto& [text, message] : cases) {
     INFO(text);
@@ -275,6 +283,13 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1\n",
        "ends early"},
       {"PLY\n", "not a PLY file"},
+      // An unsigned stream read took -4 for 2^64 - 4; the count is reported as written.
+      {"ply\nformat ascii 1.0\nelement vertex -4\nproperty float x\nproperty float y\nproperty float z\n"
+       "end_header\n",
+       "malformed PLY element line 'element vertex -4'"},
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 1\nproperty list float int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1 2\n",
+       "PLY list count type 'float' is not an integer type"},
       {"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no end_header"},
   };
   for (const auto& [text, message] : plys) {
