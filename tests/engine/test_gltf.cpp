@@ -810,14 +810,23 @@ std::string write_mode_quad(const TempDir& tmp, const std::string& name, int mod
   bin.close();
   json prim = {{"attributes", {{"POSITION", 0}}}, {"mode", mode}};
   if (indexed) prim["indices"] = 1;
-  json prims = {prim};
+  // Arrays of one element spelled out: a one-element brace list is an array under GCC and the
+  // element itself under clang (nlohmann's initializer-list rules).
+  json prims = json::array({prim});
   if (lines) prims.push_back({{"attributes", {{"POSITION", 0}}}, {"mode", 1}});
+  json scene = json::object(), node = json::object(), mesh = json::object(), buffer = json::object();
+  scene["nodes"] = json::array({0});
+  node["mesh"] = 0;
+  mesh["name"] = "quad";
+  mesh["primitives"] = prims;
+  buffer["uri"] = name + ".bin";
+  buffer["byteLength"] = pos_bytes + idx_bytes;
   const json gltf = {{"asset", {{"version", "2.0"}}},
                      {"scene", 0},
-                     {"scenes", {{{"nodes", {0}}}}},
-                     {"nodes", {{{"mesh", 0}}}},
-                     {"meshes", {{{"name", "quad"}, {"primitives", prims}}}},
-                     {"buffers", {{{"uri", name + ".bin"}, {"byteLength", pos_bytes + idx_bytes}}}},
+                     {"scenes", json::array({scene})},
+                     {"nodes", json::array({node})},
+                     {"meshes", json::array({mesh})},
+                     {"buffers", json::array({buffer})},
                      {"bufferViews",
                       {{{"buffer", 0}, {"byteOffset", 0}, {"byteLength", pos_bytes}},
                        {{"buffer", 0}, {"byteOffset", pos_bytes}, {"byteLength", std::max<size_t>(idx_bytes, 2)}}}},
