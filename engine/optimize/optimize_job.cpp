@@ -1413,7 +1413,8 @@ class Job {
     auto number = [&](const json& j, const std::string& name, double lo) {
       if (!j.is_number()) bad(name + " is not a number");
       const double v = j.get<double>();
-      if (!std::isfinite(v) || v < lo) bad(name + " is not a finite number >= " + std::to_string(lo));
+      if (!std::isfinite(v)) bad(name + " is not a finite number");
+      if (v < lo) bad(name + " is below " + std::to_string(lo));
       return v;
     };
     // Adam's moments: finite, the second one not negative (bfloat16 patterns are a float's high bits).
@@ -1477,14 +1478,15 @@ class Job {
       for (const auto& r : state.at("log")) {
         row(r, 4, "log");
         // (rmse is −1 without a ground truth)
-        log_.push_back({integer(r[0], "log iteration", 0, next_iteration), number(r[1], "log loss", 0.0),
+        log_.push_back({integer(r[0], "log iteration", 0, next_iteration), number(r[1], "log loss", -HUGE_VAL),
                         number(r[2], "log seconds", 0.0), number(r[3], "log rmse", -1.0)});
       }
       if (state.contains("validation"))  // checkpoints from before validation losses have none
         for (const auto& r : state.at("validation")) {
           row(r, 3, "validation");
           validation_.push_back({integer(r[0], "validation iteration", 0, next_iteration),
-                                 number(r[1], "validation loss", 0.0), number(r[2], "validation seconds", 0.0)});
+                                 // (unbiased: slightly negative near zero)
+                                 number(r[1], "validation loss", -HUGE_VAL), number(r[2], "validation seconds", 0.0)});
         }
       elapsed_before_ = number(state.at("seconds"), "seconds", 0.0);
       initial_loss_ = number(state.at("initial_loss"), "initial_loss", -1.0);  // −1: not measured yet

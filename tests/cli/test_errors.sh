@@ -497,6 +497,12 @@ PY
     corrupt "$name" "$stmt"
     expect_error "resume_$name" "$@" -- optimize small/opt.json --resume "small/opt_$name" -q
   }
+  # The finished run's own checkpoint resumes (and finishes at once); its validation losses may be
+  # negative (an unbiased estimate near zero).
+  rm -rf small/opt_intact && cp -r small/opt_base small/opt_intact
+  run_bin out.resume_intact err.resume_intact optimize small/opt.json --resume small/opt_intact -q ||
+    fail "resume of an intact checkpoint: $(cat err.resume_intact)"
+  resume_error validation_string 's["validation"][0][1] = "x"' "state.json" "validation loss is not a number"
   resume_error next_huge 's["next_iteration"] = 10**15' "state.json" "next_iteration" "outside 0..4"
   resume_error next_negative 's["next_iteration"] = -5' "state.json" "next_iteration"
   resume_error next_float 's["next_iteration"] = 2.5' "state.json" "next_iteration" "not an integer"
