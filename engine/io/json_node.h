@@ -58,6 +58,7 @@ class Node {
   }
   void mark_used(const std::string& key) { used_.insert(key); }
   std::string pointer(const std::string& key) const { return ptr_ + "/" + key; }
+  const std::string& pointer() const { return ptr_; }  // this node's own
   const std::string& file() const { return file_; }
   // Reports the first key nobody read.
   void finish() const {

@@ -424,7 +424,8 @@ struct Loader {
     merged.material = mat;
     if (n.has("interior")) merged.interior = medium_index(n, "interior");
     if (n.has("exterior")) merged.exterior = medium_index(n, "exterior");
-    const std::string where = file + ": " + n.pointer("type");
+    // The shape, not its "type": finalize_mesh's errors are about its transform or vertices.
+    const std::string where = file + ": " + n.pointer() + " ('" + name + "')";
     finalize_mesh(merged, to_world, flip, where);
     limits::add_to_total(where, "shape count", total_shapes, 1, limits::kShapes);
     limits::add_to_total(where, "total vertex count (all shapes)", total_vertices, merged.vertex_count(),

@@ -174,6 +174,9 @@ expect_error mesh_uv_not_finite "/shapes/0/uvs" "finite" -- \
 printf '{"integrator": {"spp": 4, "spp": 8}}\n' >dupkey.json
 expect_error json_duplicate_key "dupkey.json" "key 'spp' appears twice" -- render dupkey.json -o o.exr
 expect_error pose_beyond_coordinates "box" "beyond 1e18" -- render "$small" --set plastic_box.scale=1e29 -o o.exr -q
+# Errors of a shape's transform or vertices name the shape, not its "type" key.
+expect_error shape_degenerate_transform "/shapes/6 ('metal_cube')" "degenerate transform" -- \
+  render "$(v zeroscale 's["shapes"][6]["transform"] = {"scale": 0}')" -o o.exr -q
 mkdir -p adir.json
 expect_error scene_is_directory "adir.json" -- render adir.json -o o.exr
 expect_error bad_integrator_value "/integrator" "max_depth" -- \
