@@ -349,6 +349,11 @@ void dump_parameter_values(const Scene& scene, const std::string& dir) {
 void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const GradientResult& r,
                             const std::string& dir) {
   ensure_output_folder(dir);
+  // gradients.json, written last, lists the set: a folder that has it holds a complete one. An
+  // earlier run's goes first, so a write failing half-way does not leave it naming a mix of old
+  // and new files.
+  std::error_code ec;
+  fs::remove(fs::path(dir) / "gradients.json", ec);
   write_image((fs::path(dir) / "image.exr").string(), r.image);
   nlohmann::json j;
   j["method"] = method_name(rq.method);

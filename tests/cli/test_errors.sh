@@ -404,6 +404,17 @@ w, h = 16, 16
 open('big_adjoint.pfm', 'wb').write(b'PF\\n%d %d\\n-1\\n' % (w, h) + struct.pack('<%df' % (w * h * 3), *([3e38] * (w * h * 3))))"
 expect_error grad_overflow_adjoint "not finite" -- \
   grad "$small" --spp 1 --adjoint-image big_adjoint.pfm --out g_overflow2 -q
+# A grad whose writing fails half-way (here: a folder where a gradient image goes) leaves no
+# gradients.json from an earlier run naming a mix of old and new files.
+grad_partial() {
+  expect_ok grad_partial_first grad "$small" --spp 1 --target t16.exr --out g_partial -q --param wall.albedo || return
+  [ -f g_partial/gradients.json ] || { fail "grad wrote no gradients.json"; return; }
+  rm g_partial/wall.albedo.grad.exr && mkdir g_partial/wall.albedo.grad.exr
+  expect_error_now grad_partial_second "wall.albedo.grad.exr" "is a folder" -- \
+    grad "$small" --spp 1 --target t16.exr --out g_partial -q --param wall.albedo
+  [ ! -e g_partial/gradients.json ] || fail "a grad that failed half-way left the earlier gradients.json"
+}
+in_background grad_partial
 # Seeds are non-negative integers within 64 bits (-1 and 10^23 both became 2^64 - 1).
 expect_error seed_negative "--seed" "not a non-negative integer" -- render "$small" --seed -1 -o o.exr --spp 1 -q
 expect_error seed_overflow "--seed" "exceeds 2^64" -- render "$small" --seed 99999999999999999999999 -o o.exr -q
