@@ -854,13 +854,19 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
       throw file_error(path, "texture references a missing sampler");
     const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
-    if (tex.sampler >= 0)
-      for (const int w : {model.samplers[size_t(tex.sampler)].wrapS, model.samplers[size_t(tex.sampler)].wrapT})
+    if (tex.sampler >= 0) {
+      const auto& sampler = model.samplers[size_t(tex.sampler)];
+      for (const int w : {sampler.wrapS, sampler.wrapT})
         if (w != 33071 && w != 33648 && w != 10497)
           throw file_error(path, "sampler " + std::to_string(tex.sampler) + ": wrap mode " + std::to_string(w) +
                                      " is not one of 33071 (clamp), 33648 (mirrored repeat) and 10497 (repeat)");
-    // CLAMP_TO_EDGE; mirrored falls back to repeat
-    return TextureImage{&img, wrap == 33071 ? Wrap::Clamp : Wrap::Repeat};
+      // A bitmap parameter has one wrap mode for both axes (wrapT was ignored before).
+      if (sampler.wrapS != sampler.wrapT)
+        throw file_error(path, "sampler " + std::to_string(tex.sampler) + ": wrapS " + std::to_string(sampler.wrapS) +
+                                   " and wrapT " + std::to_string(sampler.wrapT) +
+                                   " differ (one wrap mode for both axes is supported)");
+    }
+    return TextureImage{&img, wrap == 33071 ? Wrap::Clamp : wrap == 33648 ? Wrap::Mirror : Wrap::Repeat};
   };
   // An sRGB 8-bit glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
   auto texture_param = [&](int texture, const std::vector<float>& factor, float upper, const std::string& name,

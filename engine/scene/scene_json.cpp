@@ -100,7 +100,8 @@ struct Loader {
       if (type != "bitmap") n.fail_at("type", "unknown texture type '" + type + "' (expected \"bitmap\")");
       std::string path = resolve(n.string("file"));
       std::string wrap = n.string("wrap", "repeat");
-      if (wrap != "repeat" && wrap != "clamp") n.fail_at("wrap", "expected \"repeat\" or \"clamp\"");
+      if (wrap != "repeat" && wrap != "clamp" && wrap != "mirror")
+        n.fail_at("wrap", "expected \"repeat\", \"clamp\" or \"mirror\"");
       std::string cs = n.string("color_space", "auto");
       if (cs != "auto" && cs != "srgb" && cs != "linear") n.fail_at("color_space", "expected \"srgb\" or \"linear\"");
       n.finish();
@@ -114,7 +115,7 @@ struct Loader {
           p.value[i * size_t(c) + size_t(k)] =
               img.data[i * size_t(img.channels) + size_t(std::min(k, img.channels - 1))];
       slot.bitmap = true;
-      slot.wrap = wrap == "clamp" ? Wrap::Clamp : Wrap::Repeat;
+      slot.wrap = wrap == "clamp" ? Wrap::Clamp : wrap == "mirror" ? Wrap::Mirror : Wrap::Repeat;
     } else {
       throw file_error(file, where + ": expected a number, [r, g, b] or a bitmap texture object");
     }

@@ -356,7 +356,8 @@ class XmlScene {
     if (!has(p, "filename")) fail(n, "bitmap needs a filename");
     json t = {{"type", "bitmap"}, {"file", get_string(p, "filename", "")}};
     const std::string wrap = get_string(p, "wrap_mode", "repeat");
-    if (wrap != "repeat" && wrap != "clamp") fail(n, "wrap_mode '" + wrap + "' is not supported (repeat or clamp)");
+    if (wrap != "repeat" && wrap != "clamp" && wrap != "mirror")
+      fail(n, "wrap_mode '" + wrap + "' is not supported (repeat, mirror or clamp)");
     t["wrap"] = wrap;
     if (get_bool(p, "raw", false)) t["color_space"] = "linear";
     const std::string filter = get_string(p, "filter_type", "bilinear");

@@ -4,7 +4,9 @@
 // | <owner>.<key> | [H, W, C] | yes (every texel) |
 // Texel (row i, column j) has its centre at uv = ((j + 0.5)/W, (i + 0.5)/H); row 0 is the file's
 // first scanline (glTF's convention, and the neutral reference format's). A lookup blends the
-// four texel centres around (u·W − 0.5, v·H − 0.5); indices wrap (repeat) or clamp.
+// four texel centres around (u·W − 0.5, v·H − 0.5); indices wrap (repeat), clamp, or mirror
+// (mirrored repeat: period 2W, the second copy reversed, as GL's MIRRORED_REPEAT and Mitsuba's
+// "mirror").
 #include <algorithm>
 #include <cmath>
 
@@ -13,7 +15,7 @@
 
 namespace bl {
 
-enum class Wrap { Repeat, Clamp };
+enum class Wrap { Repeat, Clamp, Mirror };
 
 // The four texels a lookup touches and their bilinear weights; eval and backprop share it, so the
 // derivative shader is the exact transpose of the lookup.
@@ -28,6 +30,12 @@ inline int wrap_index(long i, int n, Wrap wrap) {
   if (wrap == Wrap::Repeat) {
     long m = i % n;
     return int(m < 0 ? m + n : m);
+  }
+  if (wrap == Wrap::Mirror) {
+    const long period = 2 * long(n);
+    long m = i % period;
+    if (m < 0) m += period;
+    return int(m < n ? m : period - 1 - m);
   }
   return int(std::clamp(i, 0L, long(n - 1)));
 }

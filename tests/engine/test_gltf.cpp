@@ -750,6 +750,7 @@ TEST_CASE("glTF input the specification forbids is a one-line error naming the f
        },
        "NORMAL (accessor 1): component type UNSIGNED_BYTE is not allowed"},
       {"wrap", [](json& s) { s["samplers"][0]["wrapT"] = 12345; }, "sampler 0: wrap mode 12345 is not one of"},
+      {"wrap_st", [](json& s) { s["samplers"][0]["wrapT"] = 33071; }, "sampler 0: wrapS 10497 and wrapT 33071 differ"},
       {"material", [](json& s) { s["meshes"][0]["primitives"][0]["material"] = -5; },
        "mesh 'ground' primitive 0: material -5 is out of range"},
       {"texcoord", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"] = 1; },
@@ -774,6 +775,15 @@ TEST_CASE("glTF input the specification forbids is a one-line error naming the f
   CHECK(load_error(bundled_variant(tmp, "stride12.gltf", [](json& s) {
           s["bufferViews"][0]["byteStride"] = 12;
         })).empty());
+  // Mirrored repeat (33648) is read as such: it fell back to repeat.
+  {
+    auto scene = load_scene(bundled_variant(
+        tmp, "mirror.gltf", [](json& s) { s["samplers"][0]["wrapS"] = s["samplers"][0]["wrapT"] = 33648; }));
+    bool mirrored = false;
+    for (const Material& m : scene->materials)
+      mirrored = mirrored || (m.albedo.bitmap && m.albedo.wrap == Wrap::Mirror);
+    CHECK(mirrored);
+  }
   const auto gold_cube = [&](const std::string& name, double scale) {
     auto scene = load_scene(bundled_variant(tmp, name, [&](json& s) {
       for (auto& q : s["nodes"][2]["rotation"]) q = q.get<double>() * scale;

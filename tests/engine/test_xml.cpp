@@ -376,6 +376,31 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
   CHECK(scene->cameras[0].height == 6);
 }
 
+// A bitmap texture's wrap_mode: Mitsuba's repeat, mirror and clamp (mirror was refused).
+TEST_CASE("Mitsuba bitmap wrap modes", "[xml]") {
+  const std::string dir = test::temp_dir("xml-wrap");
+  write(dir, "quad.obj", "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3 4/4\n");
+  Image tex(4, 4, 3);
+  for (size_t i = 0; i < tex.data.size(); ++i) tex.data[i] = 0.1f + 0.05f * float(i % 13);
+  write_image(dir + "/tex.exr", tex);
+  for (const auto& [mode, wrap] :
+       {std::pair{"repeat", Wrap::Repeat}, {"mirror", Wrap::Mirror}, {"clamp", Wrap::Clamp}}) {
+    CAPTURE(mode);
+    const std::string path = write(
+        dir, "wrap.xml",
+        std::string("<scene version=\"3.0.0\"><sensor type=\"perspective\"><float name=\"fov\" value=\"40\"/>"
+                    "<film type=\"hdrfilm\"><integer name=\"width\" value=\"8\"/><integer name=\"height\" "
+                    "value=\"8\"/></film></sensor><shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                    "<bsdf type=\"diffuse\"><texture type=\"bitmap\" name=\"reflectance\"><string name=\"filename\" "
+                    "value=\"tex.exr\"/><string name=\"wrap_mode\" value=\"") +
+            mode + "\"/></texture></bsdf></shape></scene>\n");
+    auto scene = load_scene(path);
+    bool found = false;
+    for (const Material& m : scene->materials) found = found || (m.albedo.bitmap && m.albedo.wrap == wrap);
+    CHECK(found);
+  }
+}
+
 // An envmap emitter is the environment in Mitsuba's convention (bilinear lookup, u = 0 at −z;
 // the lookup itself is tested against Mitsuba's formula in kernels_envmap): scale, identity
 // to_world, float files as stored and 8-bit files sRGB-decoded, and the scene renders.

@@ -49,8 +49,10 @@ std::string describe(const Param& p, Wrap wrap, Vec2f uv, const Vec3f& adjoint) 
   std::ostringstream o;
   o.precision(9);
   o << p.name << " shape " << p.height() << "x" << p.width() << "x" << p.channels() << " wrap "
-    << (wrap == Wrap::Repeat ? "repeat" : "clamp") << " uv (" << uv.x << ", " << uv.y << ") adjoint (" << adjoint.x
-    << ", " << adjoint.y << ", " << adjoint.z << ")";
+    << (wrap == Wrap::Repeat  ? "repeat"
+        : wrap == Wrap::Clamp ? "clamp"
+                              : "mirror")
+    << " uv (" << uv.x << ", " << uv.y << ") adjoint (" << adjoint.x << ", " << adjoint.y << ", " << adjoint.z << ")";
   return o.str();
 }
 
@@ -91,7 +93,7 @@ TEST_CASE("bitmap lookups follow the texel-centre convention", "[texture]") {
   ParamStore store;
   const int h = store.add(random_param("t.rgb", {5, 7, 3}, rng));
   const Param& p = store[h];
-  for (Wrap wrap : {Wrap::Repeat, Wrap::Clamp}) {
+  for (Wrap wrap : {Wrap::Repeat, Wrap::Clamp, Wrap::Mirror}) {
     // A lookup at a texel centre returns that texel exactly.
     for (int row = 0; row < 5; ++row)
       for (int col = 0; col < 7; ++col) {
@@ -121,13 +123,30 @@ TEST_CASE("bitmap lookups follow the texel-centre convention", "[texture]") {
     const Vec3f below = bitmap_eval<float>(p, Wrap::Clamp, {uv.x, 1.7f}),
                 last_row = bitmap_eval<float>(p, Wrap::Clamp, {uv.x, 4.5f / 5.f});
     CHECK(below.y == Approx(last_row.y).epsilon(1e-6));
+    // Mirror reflects the texture about u = 0 and u = 1 (and v alike), with period 2.
+    const Vec3f m = bitmap_eval<float>(p, Wrap::Mirror, uv);
+    for (const Vec2f reflected :
+         {Vec2f{-uv.x, uv.y}, Vec2f{2.f - uv.x, uv.y}, Vec2f{uv.x, -uv.y}, Vec2f{uv.x + 2.f, uv.y - 2.f}}) {
+      const Vec3f r = bitmap_eval<float>(p, Wrap::Mirror, reflected);
+      INFO("reflected (" << reflected.x << ", " << reflected.y << ")");
+      CHECK(r.x == Approx(m.x).epsilon(1e-4));
+      CHECK(r.z == Approx(m.z).epsilon(1e-4));
+    }
+    // Inside [0, 1]² all three agree away from the border cells.
+    if (uv.x > 1.f / 7.f && uv.x < 6.f / 7.f && uv.y > 1.f / 5.f && uv.y < 4.f / 5.f)
+      CHECK(m.y == Approx(a.y).epsilon(1e-5));
   }
+  // At the border the mirror repeats the edge texel across it: halfway between the last centre and
+  // its mirror image is that texel.
+  const Vec3f edge = bitmap_eval<float>(p, Wrap::Mirror, {1.f, 0.5f / 5.f});
+  CHECK(edge.x == Approx(p.value[6 * 3]).epsilon(1e-6));
 }
 
 TEST_CASE("bitmap backprop matches finite differences per texel", "[texture][backprop]") {
   TestRng rng(17);
   const std::vector<BitmapCase> cases{{{5, 7, 3}, Wrap::Repeat}, {{5, 7, 3}, Wrap::Clamp},  {{5, 7, 1}, Wrap::Repeat},
-                                      {{5, 7, 1}, Wrap::Clamp},  {{1, 4, 3}, Wrap::Repeat}, {{3, 1, 1}, Wrap::Clamp}};
+                                      {{5, 7, 1}, Wrap::Clamp},  {{1, 4, 3}, Wrap::Repeat}, {{3, 1, 1}, Wrap::Clamp},
+                                      {{5, 7, 3}, Wrap::Mirror}, {{1, 4, 1}, Wrap::Mirror}};
   for (const BitmapCase& bc : cases) {
     ParamStore store;
     store.add(random_param("other", {3}, rng));
