@@ -250,6 +250,7 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
         std::vector<SampleRecord>& records = thread_scratch.records;
         for (int y = y0; y < y1; ++y)
           for (int x = x0; x < x1; ++x) {
+            if (cancelled(o.cancel)) continue;
             const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
             CameraPacket packet;  // camera rays as render() traces them
             // 1. Primal estimates of this pixel's samples.

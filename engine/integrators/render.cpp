@@ -28,7 +28,7 @@ void for_each_tile(int width, int height, const std::function<void(int, int, int
   const int tiles_x = (width + kTile - 1) / kTile, tiles = dist::tile_count(width, height);
   tbb::parallel_for(0, tiles, [&](int t) {
     if (!dist::owns_tile(t, tiles)) return;  // another MPI rank's
-    if (cancel && cancel->load(std::memory_order_relaxed)) return;
+    if (cancelled(cancel)) return;
     int x0 = (t % tiles_x) * kTile, y0 = (t / tiles_x) * kTile;
     tile_fn(x0, y0, std::min(x0 + kTile, width), std::min(y0 + kTile, height));
   });
@@ -47,6 +47,7 @@ Image render(const Scene& scene, const PassOptions& o, PassStats* stats) {
         NoObserver none;
         for (int y = y0; y < y1; ++y)
           for (int x = x0; x < x1; ++x) {
+            if (cancelled(o.cancel)) continue;
             const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
             Vec3d sum(0.0);  // double: the mean of many samples does not drift with spp
             CameraPacket packet;

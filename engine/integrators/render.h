@@ -55,6 +55,9 @@ PassStats backward(Scene& scene, const PassOptions& options, AdjointMethod metho
 // rank's tiles only (engine/dist/dist.h).
 void for_each_tile(int width, int height, const std::function<void(int, int, int, int)>& tile_fn,
                    const std::atomic<bool>* cancel = nullptr);
+// Whether a pass was asked to stop (PassOptions::cancel). for_each_tile checks it per tile and
+// the passes per pixel: at 2^20 spp one 16² tile is minutes of work.
+inline bool cancelled(const std::atomic<bool>* cancel) { return cancel && cancel->load(std::memory_order_relaxed); }
 // Pixels in this rank's tiles (all of them on one rank).
 uint64_t owned_pixels(int width, int height);
 

@@ -92,6 +92,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
         NoObserver none;
         for (int y = y0; y < y1; ++y)
           for (int x = x0; x < x1; ++x) {
+            if (cancelled(rq.pass.cancel)) continue;
             const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
             Spectrum<Var> sum(Var(0.f));
             CameraPacket packet;  // the camera rays as render() traces them

@@ -247,22 +247,22 @@ def test_assigning_to_params_raises_instead_of_doing_nothing(scene):
 def test_ctrl_c_interrupts_a_pass(scene, which):
     # Python handles signals between bytecodes of its main thread: a pass used to keep Ctrl-C
     # waiting until it finished. It now stops after its current tiles with KeyboardInterrupt.
+    # The pass asked for (2^20 spp at 256²) would take hours: without the interruption this test
+    # does not finish within ctest's timeout (no wall-clock assertion of its own).
     import _thread
     res = (256, 256)
+    spp = 1 << 20  # the limit of one pass
     d_image = np.ones((res[1], res[0], 3), np.float32)
     call = {
-        "render": lambda: backlight.render(scene, spp=4096, seed=1, resolution=res),
-        "backward": lambda: backlight.backward(scene, d_image, spp=4096, seed=1, resolution=res,
+        "render": lambda: backlight.render(scene, spp=spp, seed=1, resolution=res),
+        "backward": lambda: backlight.backward(scene, d_image, spp=spp, seed=1, resolution=res,
                                                params=["wall.albedo"]),
     }[which]
     timer = threading.Timer(0.3, _thread.interrupt_main)
-    start = time.perf_counter()
     timer.start()
     with pytest.raises(KeyboardInterrupt):
         call()
-    elapsed = time.perf_counter() - start
     timer.join()
-    assert elapsed < 10, elapsed  # the whole pass takes minutes
     # The scene is usable and unchanged: the lock released, the film size restored.
     assert scene.cameras[0] == tuple(int(v) for v in backlight.load(CORNELL).cameras[0])
     image = backlight.render(scene, spp=1, seed=1, resolution=RES)
