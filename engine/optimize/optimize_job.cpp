@@ -1466,7 +1466,8 @@ class Job {
         p.average.clear();
         if (p.average_count > 0) {
           p.average = read_floats(dir + "/" + p.name + ".average", size);
-          Param average = param;
+          Param average;  // the range to check against, without copying the value or gradient
+          average.name = param.name, average.lower = param.lower, average.upper = param.upper;
           average.value = p.average;
           validate_param(average, dir + "/" + p.name + ".average");
         }
