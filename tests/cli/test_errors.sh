@@ -263,6 +263,10 @@ expect_error gltf_buffer_view_buffer "bvbuf.gltf" "re:buffer" -- \
 expect_error gltf_node "node.gltf" "node" -- \
   render "$(gv node 's["scenes"][0]["nodes"] = [0, 77]')" -o o.exr --resolution 8x8 --spp 1
 cp small/claim.png g/claim.png
+# A JPEG's start-of-frame claiming 65535² pixels (4.3 G, over the limit) followed by garbage.
+printf '\xff\xd8\xff\xc0\x00\x11\x08\xff\xff\xff\xff\x03\x01\x22\x00\x02\x11\x01\x03\x11\x01garbage' >g/claim.jpg
+expect_error_small gltf_jpeg_claims_gigabytes "claimjpg.gltf" "exceeds the limit" -- \
+  render "$(gv claimjpg 's["images"][0] = {"uri": "claim.jpg"}')" -o o.exr --resolution 8x8 --spp 1
 expect_error_small gltf_image_claims_gigabytes "claimimg.gltf" "cannot hold a PNG of 16000 x 16000 pixels" -- \
   render "$(gv claimimg 's["images"][0] = {"uri": "claim.png"}')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_texture_index "texidx.gltf" "texture" -- \
