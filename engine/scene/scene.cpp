@@ -62,6 +62,9 @@ void Scene::prepare_geometry() {
     std::vector<double> areas(m.triangle_count());
     double total = 0;
     for (size_t t = 0; t < areas.size(); ++t) total += areas[t] = m.triangle_area(t);
+    // No area to emit from: every light sample's pdf would divide by zero (an image of NaN).
+    if (!(total > 0.0) || !std::isfinite(float(total)))
+      throw InputError(source + ": emitter '" + m.name + "': its triangles have no area (every one is degenerate)");
     e.total_area = float(total);
     e.triangle_cdf.resize(areas.size());
     double run = 0;

@@ -171,6 +171,11 @@ expect_error mesh_uv_not_finite "/shapes/0/uvs" "finite" -- \
   render "$(v infuv 's["shapes"][0] = {"name": "t", "type": "mesh",
   "material": "wall", "positions": [[-1, -1, -1], [1, -1, -1], [0, 1, -1]], "indices": [[0, 1, 2]],
   "uvs": [[0, 0], [1, 0], [0, 1e39]]}')" -o o.exr --spp 1
+# An emitter whose triangles are all degenerate has no area to sample: an image of NaN before.
+expect_error emitter_zero_area "emitter 't'" "no area" -- \
+  render "$(v zeroarea 's["shapes"].append({"name": "t", "type": "mesh", "material": "wall",
+  "emitter": {"radiance": [1, 1, 1]}, "positions": [[0, 0.9, 0], [0.1, 0.9, 0], [0.2, 0.9, 0]],
+  "indices": [[0, 1, 2]]})')" -o o.exr --spp 1
 printf '{"integrator": {"spp": 4, "spp": 8}}\n' >dupkey.json
 expect_error json_duplicate_key "dupkey.json" "key 'spp' appears twice" -- render dupkey.json -o o.exr
 expect_error pose_beyond_coordinates "box" "beyond 1e18" -- render "$small" --set plastic_box.scale=1e29 -o o.exr -q
