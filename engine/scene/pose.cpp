@@ -54,8 +54,14 @@ Param vector_param(const std::string& name, const Vec3f& v, float lower) {
   return p;
 }
 
-int add_if_free(ParamStore& store, Param p, const std::string& where) {
-  if (store.find(p.name) >= 0) return -1;
+// A pose parameter `<owner>.<key>` of a shape or camera. Its name must be free: a camera, shape,
+// material or medium sharing the owner's name could already hold it (a camera "left" and a wall
+// "left" both want "left.rotate"), and one of them would silently lose its parameter.
+int add_pose_param(ParamStore& store, Param p, const std::string& where, const std::string& owner) {
+  if (store.find(p.name) >= 0)
+    throw InputError(where + ": " + owner + ": its pose parameter '" + p.name +
+                     "' is already another object's (shapes, cameras, materials and media sharing a name "
+                     "share parameter names): rename one of them");
   return store.add(std::move(p), where);
 }
 
@@ -80,9 +86,10 @@ void Scene::add_geometry_params() {
     pose.rest_normals = m.normals;
     pose.rest_areas.resize(m.triangle_count());
     for (size_t t = 0; t < m.triangle_count(); ++t) pose.rest_areas[t] = double(m.triangle_area(t));
-    pose.translate = add_if_free(params, vector_param(m.name + ".translate", Vec3f(0.f), -1e30f), source);
-    pose.rotate = add_if_free(params, vector_param(m.name + ".rotate", Vec3f(0.f), -1e30f), source);
-    pose.scale = add_if_free(params, vector_param(m.name + ".scale", Vec3f(1.f), 1e-6f), source);
+    const std::string owner = "shape '" + m.name + "'";
+    pose.translate = add_pose_param(params, vector_param(m.name + ".translate", Vec3f(0.f), -1e30f), source, owner);
+    pose.rotate = add_pose_param(params, vector_param(m.name + ".rotate", Vec3f(0.f), -1e30f), source, owner);
+    pose.scale = add_pose_param(params, vector_param(m.name + ".scale", Vec3f(1.f), 1e-6f), source, owner);
     Param positions;
     positions.name = m.name + ".positions";
     positions.shape = {int(m.vertex_count()), 3};
@@ -94,8 +101,8 @@ void Scene::add_geometry_params() {
     }
     positions.lower = -1e30f;
     positions.geometry = true;
-    pose.positions = add_if_free(params, std::move(positions), source);
-    if (pose.positions >= 0 && !m.normals.empty()) {
+    pose.positions = add_pose_param(params, std::move(positions), source, owner);
+    if (!m.normals.empty()) {
       // Normal groups: bitwise-equal position and loaded normal.
       struct Key {
         uint32_t b[6];
@@ -126,8 +133,10 @@ void Scene::add_geometry_params() {
     CameraPose& pose = camera_poses[i];
     pose.rest = cameras[i];
     if (cameras[i].name.empty()) continue;
-    pose.origin = add_if_free(params, vector_param(cameras[i].name + ".origin", cameras[i].origin, -1e30f), source);
-    pose.rotate = add_if_free(params, vector_param(cameras[i].name + ".rotate", Vec3f(0.f), -1e30f), source);
+    const std::string owner = "camera '" + cameras[i].name + "'";
+    pose.origin =
+        add_pose_param(params, vector_param(cameras[i].name + ".origin", cameras[i].origin, -1e30f), source, owner);
+    pose.rotate = add_pose_param(params, vector_param(cameras[i].name + ".rotate", Vec3f(0.f), -1e30f), source, owner);
   }
   // The values as loaded are what the meshes and cameras show: nothing to apply.
   for (size_t i = 0; i < meshes.size(); ++i) {

@@ -84,6 +84,24 @@ void check_camera_aspect_ratios(const std::string& path, const nlohmann::json& d
   }
 }
 
+// A node has a matrix or translation/rotation/scale, never both (the schema's rule). tinygltf
+// reads TRS only when there is no matrix, so a node with both is caught in the JSON itself: its
+// TRS would otherwise be dropped without a word.
+void check_node_transforms(const std::string& path, const nlohmann::json& doc) {
+  const auto nodes = doc.find("nodes");
+  if (nodes == doc.end() || !nodes->is_array()) return;  // tinygltf reports a malformed list
+  for (size_t i = 0; i < nodes->size(); ++i) {
+    const nlohmann::json& node = (*nodes)[i];
+    if (!node.is_object() || !node.contains("matrix")) continue;
+    if (!node.contains("translation") && !node.contains("rotation") && !node.contains("scale")) continue;
+    const auto name = node.find("name");
+    const std::string named =
+        name != node.end() && name->is_string() ? " ('" + name->get<std::string>().substr(0, 100) + "')" : "";
+    throw file_error(path, "node " + std::to_string(i) + named +
+                               ": has both a matrix and translation/rotation/scale (glTF allows one or the other)");
+  }
+}
+
 // File access for tinygltf (the glTF itself, external buffers and images): only regular files,
 // of bounded size, with paths used as written. tinygltf's defaults would read a directory or a
 // device named by a `uri` (its size then reads as 2^63 and the allocation fails) and expand
@@ -143,6 +161,7 @@ tinygltf::Model read_model(const std::string& path) {
   if (!doc.is_discarded() && doc.is_object()) {  // else tinygltf reports the syntax error
     check_required_extensions(path, doc);
     check_camera_aspect_ratios(path, doc);
+    check_node_transforms(path, doc);
   }
   bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
                           : loader.LoadASCIIFromFile(&model, &err, &warn, path);
@@ -1030,7 +1049,8 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     if (!(gc.perspective.znear > 0))
       throw file_error(path, "camera " + std::to_string(ci) + ": znear must be positive");
     Camera c;
-    c.name = gc.name.empty() ? "camera" + std::to_string(ci) : gc.name;
+    // Unique among shapes and cameras (their pose parameters are named after them).
+    c.name = shape_names.make(sanitize(gc.name.empty() ? "camera" + std::to_string(ci) : gc.name));
     c.fov_axis = Camera::FovAxis::Y;  // glTF's yfov
     c.fov_degrees = float(gc.perspective.yfov * 180.0 / M_PI);
     double aspect = gc.perspective.aspectRatio > 0 ? gc.perspective.aspectRatio : 1.0;
@@ -1056,7 +1076,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     // The bounding sphere fits the 40° cone of the film's smaller side, so it stays in view at any
     // resolution (--resolution 256x192 or 192x256 alike).
     Camera c;
-    c.name = "default";
+    c.name = shape_names.make("default");
     c.fov_degrees = 40.f;
     c.fov_axis = Camera::FovAxis::Smaller;
     c.target = center;

@@ -171,6 +171,10 @@ expect_error mesh_uv_not_finite "/shapes/0/uvs" "finite" -- \
   render "$(v infuv 's["shapes"][0] = {"name": "t", "type": "mesh",
   "material": "wall", "positions": [[-1, -1, -1], [1, -1, -1], [0, 1, -1]], "indices": [[0, 1, 2]],
   "uvs": [[0, 0], [1, 0], [0, 1e39]]}')" -o o.exr --spp 1
+# Shapes, cameras, materials and media sharing a name share parameter names: a camera named like
+# a wall lost its rotate parameter to the wall's without a word.
+expect_error pose_param_clash "camera 'main'" "'main.rotate' is already another object's" "rename one" -- \
+  render "$(v clash 's["shapes"][0]["name"] = "main"')" -o o.exr --spp 1
 # An emitter whose triangles are all degenerate has no area to sample: an image of NaN before.
 expect_error emitter_zero_area "emitter 't'" "no area" -- \
   render "$(v zeroarea 's["shapes"].append({"name": "t", "type": "mesh", "material": "wall",

@@ -709,7 +709,12 @@ TEST_CASE("glTF input the specification forbids is a one-line error naming the f
          s["nodes"][2]["rotation"] = {0, 0, 0, 0};
        },
        "rotation is not a unit quaternion"},
-      {"matrix15", [](json& s) { s["nodes"][2]["matrix"] = std::vector<double>(15, 1.0); },
+      {"matrix15",
+       [](json& s) {
+         s["nodes"][2].erase("rotation");
+         s["nodes"][2].erase("translation");
+         s["nodes"][2]["matrix"] = std::vector<double>(15, 1.0);
+       },
        "node 2 ('gold_cube'): matrix needs 16 numbers, not 15"},
       {"rotation3",
        [](json& s) {
@@ -733,6 +738,9 @@ TEST_CASE("glTF input the specification forbids is a one-line error naming the f
          s["nodes"][2]["matrix"] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0.5, 0, 0, 0, 1};  // column-major
        },
        "matrix is not affine"},
+      {"matrix_and_trs",  // node 2 keeps its rotation and translation
+       [](json& s) { s["nodes"][2]["matrix"] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1}; },
+       "node 2 ('gold_cube'): has both a matrix and translation/rotation/scale"},
       // Materials, attributes, samplers.
       {"strength",
        [](json& s) { s["materials"][3]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] = -2; },
@@ -775,6 +783,17 @@ TEST_CASE("glTF input the specification forbids is a one-line error naming the f
   CHECK(load_error(bundled_variant(tmp, "stride12.gltf", [](json& s) {
           s["bufferViews"][0]["byteStride"] = 12;
         })).empty());
+  // A camera named like a mesh gets a name of its own: both have pose parameters named after
+  // them ("gold_cube.rotate"), and the camera's used to be dropped without a word.
+  {
+    auto scene =
+        load_scene(bundled_variant(tmp, "camera_name.gltf", [](json& s) { s["cameras"][0]["name"] = "gold_cube"; }));
+    REQUIRE(scene->cameras.size() == 1);
+    CHECK(scene->cameras[0].name == "gold_cube_2");
+    CHECK(scene->params.find("gold_cube.rotate") >= 0);
+    CHECK(scene->params.find("gold_cube_2.rotate") >= 0);
+    CHECK(scene->params.find("gold_cube_2.origin") >= 0);
+  }
   // Mirrored repeat (33648) is read as such: it fell back to repeat.
   {
     auto scene = load_scene(bundled_variant(
