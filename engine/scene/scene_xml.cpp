@@ -37,6 +37,26 @@ class XmlScene {
   XmlScene(std::string path, std::string text) : path_(std::move(path)), text_(std::move(text)) {}
   const std::vector<std::string>& warnings() const { return warnings_; }
 
+  // An error of the translated scene names a place in it by JSON pointer ("/shapes/3 ('shape_3'):
+  // degenerate transform"), which an XML file's author cannot look up: the pointer becomes the
+  // XML element it was translated from ("line 12: <shape type="rectangle"> ('shape_3'): ..."),
+  // keeping any key below it.
+  std::string relocate(const std::string& message) const {
+    const std::string head = path_ + ": /";
+    if (message.compare(0, head.size(), head) != 0) return message;
+    const size_t start = head.size() - 1, end = message.find_first_of(" :", start);
+    const std::string pointer = message.substr(start, end == std::string::npos ? std::string::npos : end - start);
+    const std::pair<std::string, std::string>* best = nullptr;
+    for (const auto& o : origins_)
+      if ((pointer == o.first || pointer.compare(0, o.first.size() + 1, o.first + "/") == 0) &&
+          (!best || o.first.size() > best->first.size()))
+        best = &o;
+    if (!best) return message;
+    const std::string below = pointer.substr(best->first.size());
+    return path_ + ": " + best->second + (below.empty() ? "" : " (scene key '" + below.substr(1) + "')") +
+           (end == std::string::npos ? "" : message.substr(end));
+  }
+
   json translate() {
     pugi::xml_document doc;
     // pugixml parses iteratively, but the walk below recurses: bound the depth first.
@@ -105,7 +125,8 @@ class XmlScene {
   std::map<std::string, std::string> material_of_id_;
   std::map<std::string, std::string> medium_of_id_;
   std::set<std::string> warned_;
-  std::vector<std::string> warnings_;  // printed once the scene has loaded (see load_xml_scene)
+  std::vector<std::string> warnings_;                         // printed once the scene has loaded (see load_xml_scene)
+  std::vector<std::pair<std::string, std::string>> origins_;  // JSON pointer → its XML element (relocate)
   json root_;
   int anonymous_ = 0;
 
@@ -382,6 +403,7 @@ class XmlScene {
     std::string name = id.empty() ? fresh("bsdf") : clean(id);
     while (root_["materials"].contains(name)) name = fresh(name);
     json m = bsdf(n, false);
+    origins_.push_back({"/materials/" + name, where(n)});
     root_["materials"][name] = m;
     if (!id.empty()) material_of_id_[id] = name;
     return name;
@@ -482,6 +504,7 @@ class XmlScene {
       fail(n, "unsupported integrator (path, prb, volpath or prbvolpath)");
     Props p = props(n);
     json& it = root_["integrator"];
+    origins_.push_back({"/integrator", where(n)});
     if (has(p, "max_depth")) it["max_depth"] = get_integer(p, "max_depth", 6, -1, 1 << 20);
     if (has(p, "rr_depth")) it["rr_depth"] = get_integer(p, "rr_depth", 5, 0, 1 << 20);
     if (has(p, "hide_emitters")) it["hide_emitters"] = get_bool(p, "hide_emitters", false);
@@ -548,6 +571,7 @@ class XmlScene {
     }
     cam["resolution"] = {width, height};
     finish(n, p, {"far_clip", "shutter_open", "shutter_close", "srf"});
+    origins_.push_back({"/cameras/" + std::to_string(root_["cameras"].size()), where(n)});
     root_["cameras"].push_back(cam);
   }
 
@@ -620,6 +644,7 @@ class XmlScene {
     }
     s["material"] = material;
     finish(n, p);
+    origins_.push_back({"/shapes/" + std::to_string(root_["shapes"].size()), where(n)});
     root_["shapes"].push_back(s);
   }
 
@@ -635,6 +660,7 @@ class XmlScene {
       if (c == '.') c = '_';
     while (root_["media"].contains(name)) name = fresh(name);
     root_["media"][name] = medium(n);
+    origins_.push_back({"/media/" + name, where(n)});
     if (!id.empty()) medium_of_id_[id] = name;
     return name;
   }
@@ -776,6 +802,7 @@ class XmlScene {
     const std::string type = plugin_type(n);
     if (type != "constant" && type != "envmap") fail(n, "unsupported emitter at the top level (constant or envmap)");
     if (root_.contains("environment")) fail(n, "a second environment emitter");
+    origins_.push_back({"/environment", where(n)});
     Props p = props(n);
     if (type == "envmap") {
       // Mitsuba's lookup (bilinear, u = 0 at −z) is the environment's "mitsuba" convention; its
@@ -812,7 +839,13 @@ class XmlScene {
 
 std::unique_ptr<Scene> load_xml_scene(const std::string& path) {
   XmlScene xml(path, read_input_file(path));
-  std::unique_ptr<Scene> scene = build_json_scene(xml.translate(), path);
+  const json translated = xml.translate();
+  std::unique_ptr<Scene> scene;
+  try {
+    scene = build_json_scene(translated, path);
+  } catch (const InputError& e) {
+    throw InputError(xml.relocate(e.what()));
+  }
   // A scene that fails to load gets its one error line only; one that loads, its warnings.
   for (const std::string& w : xml.warnings()) std::fprintf(stderr, "%s\n", w.c_str());
   return scene;

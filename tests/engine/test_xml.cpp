@@ -346,6 +346,18 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
                 "<rotate x=\"1\" angle=\"abc\"/></transform></shape>\n",
        "'abc' is not a finite number"},
       {sensor + shape + "<shape", "malformed XML"},
+      // Errors found in the translated scene name the XML element, not the JSON pointer
+      // ("/shapes/0 ('shape_0')") of a file the user never wrote.
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/><transform name=\"to_world\">"
+                "<scale x=\"0\"/></transform></shape>\n",
+       "xml: line 3: <shape type=\"obj\"> ('shape_0'): degenerate transform (zero scale)"},
+      {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
+                "<bsdf type=\"diffuse\"><rgb name=\"reflectance\" value=\"1.5, 0.5, 0.5\"/></bsdf></shape>\n",
+       "xml: line 3: <bsdf type=\"diffuse\"> (scene key 'albedo'): parameter 'bsdf_"},
+      {"<sensor type=\"perspective\"><float name=\"fov\" value=\"40\"/><float name=\"near_clip\" value=\"-1\"/>"
+       "</sensor>\n" +
+           shape,
+       "xml: line 2: <sensor type=\"perspective\"> (scene key 'near_clip'): value -1 outside"},
       // References that lead back (a stack overflow before) or nest twosided in twosided.
       {sensor + shape + "<bsdf type=\"twosided\" id=\"a\"><ref id=\"a\"/></bsdf>\n",
        "line 4: <bsdf type=\"twosided\">: a twosided bsdf inside a twosided bsdf"},
