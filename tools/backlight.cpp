@@ -284,6 +284,12 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                  "throughput; same-seed differences see that dependence, the adjoint treats it as a constant\n"
                  "(it vanishes in expectation). Use --rr-depth 0 for a tight comparison.\n",
                  scene->settings.rr_depth);
+  if (scene->params[scene->params.find(c.param)].geometry)
+    std::fprintf(stderr,
+                 "note: '%s' moves geometry: silhouettes and shadow edges jump between the two renders of one\n"
+                 "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
+                 "on the mean over many seeds (--seed), not per seed.\n",
+                 c.param.c_str());
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed);
   std::printf("%-4s %16s %16s %12s\n", "dir", "adjoint", "finite_diff", "rel_error");
   bool ok = true;

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <filesystem>
 #include <random>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -254,11 +255,20 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
   const std::vector<float> gradient = scene.params[h].grad;
   const std::vector<float> theta = scene.params[h].value;
 
+  // Appearance parameters: the sampling tables are deliberately not rebuilt (see header). A
+  // geometry parameter moves meshes or a camera: they are re-posed (and the BVH and emitter
+  // tables rebuilt) for every render, or both renders would show the scene as it was.
+  const bool geometry = scene.params[h].geometry;
+  auto set_values = [&](const std::vector<float>& v) {
+    scene.params[h].value = v;
+    if (geometry) scene.prepare_sampling();
+  };
   auto loss_at = [&](const std::vector<float>& v) {
-    scene.params[h].value = v;  // sampling tables are deliberately not rebuilt (see header)
+    set_values(v);
     Image img = render(scene, quiet.pass);
     return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
   };
+  const float lower = scene.params[h].lower, upper = scene.params[h].upper;
   std::mt19937_64 rng(direction_seed);
   std::normal_distribution<double> normal;
   std::vector<CheckRow> rows;
@@ -279,12 +289,30 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     double predicted = 0;
     for (size_t i = 0; i < v.size(); ++i) predicted += double(gradient[i]) * (double(plus[i]) - double(minus[i]));
     row.adjoint = predicted / (2 * eps);
-    for (size_t i = 0; i < v.size(); ++i)
+    for (size_t i = 0; i < v.size(); ++i) {
       if (!std::isfinite(plus[i]) || !std::isfinite(minus[i]))
         throw InputError("--eps " + std::to_string(eps) + ": θ ± eps·v of '" + name + "' is not finite in float");
-    row.finite_difference = (loss_at(plus) - loss_at(minus)) / (2 * eps);
+      // Outside the valid range the renders would show a scene --set refuses (|g| > 1, a
+      // negative density): numbers without meaning.
+      if (std::min(plus[i], minus[i]) < lower || std::max(plus[i], minus[i]) > upper) {
+        std::ostringstream s;
+        s << "--eps " << eps << ": θ ± eps·v leaves the valid range [" << lower << ", " << upper << "] of '" << name
+          << "' (element " << i << " would be " << (plus[i] < lower || plus[i] > upper ? plus[i] : minus[i])
+          << "; use a smaller --eps)";
+        throw InputError(s.str());
+      }
+    }
+    double loss_plus = 0, loss_minus = 0;
+    try {
+      loss_plus = loss_at(plus);
+      loss_minus = loss_at(minus);
+    } catch (const InputError&) {  // e.g. a step that makes a triangle degenerate: the scene as it was
+      set_values(theta);
+      throw;
+    }
+    row.finite_difference = (loss_plus - loss_minus) / (2 * eps);
     if (!std::isfinite(row.finite_difference)) {
-      scene.params[h].value = theta;
+      set_values(theta);
       throw InputError("--eps " + std::to_string(eps) + ": the renders at θ ± eps·v of '" + name +
                        "' give a loss that is not finite (use a smaller --eps)");
     }
@@ -292,7 +320,7 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
         std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
     rows.push_back(row);
   }
-  scene.params[h].value = theta;
+  set_values(theta);
   return rows;
 }
 

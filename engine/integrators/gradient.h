@@ -62,8 +62,10 @@ struct CheckRow {
 // For `directions` random directions v with i.i.d. standard-normal elements (seeded,
 // reproducible), steps ±eps·v,
 // compares the adjoint with central differences at the same seed. Sampling distributions that
-// depend on parameters (environment importance sampling) are held fixed, so both sides
-// differentiate the same estimator.
+// depend on appearance parameters (environment importance sampling, medium majorants) are held
+// fixed, so both sides differentiate the same estimator; a geometry parameter re-poses the scene
+// for each render (the BVH and emitter tables follow the meshes). Steps that leave the
+// parameter's valid range are refused (InputError).
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
                                         int directions, double eps, uint64_t direction_seed);
 
