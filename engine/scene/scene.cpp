@@ -4,6 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <sstream>
 
 #include "engine/core/limits.h"
 
@@ -71,6 +73,12 @@ void Scene::prepare_geometry() {
     for (size_t t = 0; t < areas.size(); ++t) e.triangle_cdf[t] = float((run += areas[t]) / total);
     if (!e.triangle_cdf.empty()) e.triangle_cdf.back() = 1.f;
   }
+  Vec3f lo(std::numeric_limits<float>::max()), hi(-std::numeric_limits<float>::max());
+  for (const auto& m : meshes)
+    for (size_t v = 0; v < m.vertex_count(); ++v)
+      for (int k = 0; k < 3; ++k)
+        lo[k] = std::min(lo[k], m.positions[v][k]), hi[k] = std::max(hi[k], m.positions[v][k]);
+  extent = meshes.empty() ? 0.f : length(hi - lo);
   geometry = std::make_unique<Geometry>();
   geometry->build(meshes);
   has_null_surfaces = false;
@@ -85,7 +93,33 @@ void Scene::prepare_sampling() {
 
 void Scene::prepare_sampling_only() {
   environment.prepare(params);
-  for (auto& m : media) m.prepare(params);
+  for (auto& m : media) {
+    m.prepare(params);
+    // Tracking takes ~majorant × length steps: a medium whose density × scale overflows or is
+    // optically solid over a majorant block (a homogeneous one: over the scene) would never finish.
+    float length_scale = extent, majorant = m.homogeneous_majorant;
+    if (m.grid) {
+      const GridSize g = grid_size(params[m.density]);
+      const Vec3f size = m.bbox_max - m.bbox_min;
+      const Vec3f block{size.x * float(std::min(m.block, g.x)) / float(g.x),
+                        size.y * float(std::min(m.block, g.y)) / float(g.y),
+                        size.z * float(std::min(m.block, g.z)) / float(g.z)};
+      length_scale = length(block);
+      majorant = m.majorants.max();
+    }
+    if (!std::isfinite(majorant))
+      throw InputError(source + ": medium '" + m.name +
+                       "': its extinction (density × scale × majorant headroom) exceeds float's range");
+    const double depth = double(majorant) * double(length_scale);
+    if (depth > limits::kOpticalDepth) {
+      std::ostringstream s;
+      s << source << ": medium '" << m.name << "': extinction up to " << majorant
+        << " (density × scale × majorant headroom) makes ~" << depth << " tracking steps across "
+        << (m.grid ? "one majorant block" : "the scene") << ", beyond the limit of " << limits::kOpticalDepth
+        << " (an optically solid medium: lower its density or scale)";
+      throw InputError(s.str());
+    }
+  }
 }
 
 bool Scene::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {

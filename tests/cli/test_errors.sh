@@ -340,6 +340,13 @@ expect_error medium_grid_too_large "huge.vol" "exceeds the limit" -- \
   render "$(vv hugevox 's["media"]["smoke"]["density"]["file"] = "huge.vol"')" -o o.exr -q
 expect_error set_grid_too_large "huge.vol" "exceeds the limit" -- \
   render vol/scene.json -o o.exr --spp 1 --set smoke.density=vol/huge.vol -q
+# Extinction beyond float's range (each value within its own range) or optically solid: tracking
+# never finished (a homogeneous majorant of inf steps by 0; steps of 1e-20 no longer advance t).
+expect_error medium_extinction_overflow "medium 'smoke'" "exceeds float's range" -- \
+  render "$(vv overflow 's["media"]["smoke"]["type"] = "homogeneous"; s["media"]["smoke"]["density"] = 1e30;
+s["media"]["smoke"]["scale"] = 1e9; s["media"]["smoke"].pop("bbox")')" -o o.exr --spp 1 -q
+expect_error medium_optically_solid "medium 'smoke'" "one majorant block" "beyond the limit of 1e+06" -- \
+  render vol/scene.json -o o.exr --spp 1 -q --set smoke.scale=1e20
 expect_error rb_with_media "scene.json" "rb does not support scenes with media" -- \
   grad vol/scene.json --method rb --spp 1 --adjoint-image "$repo/tests/data/mitsuba3-volume/adjoint.exr" --out g_rb -q
 
