@@ -1,7 +1,8 @@
 // Null-collision tracking: Beer–Lambert for homogeneous media by delta and ratio tracking, ratio
 // tracking against quadrature through a heterogeneous grid, independence of the majorant, exact
 // replay, and the derivative of transmittance in expectation (dT/dσ = −d·T), including the score
-// terms of delta tracking's real/null choices with a negative control that omits them.
+// terms of delta tracking's real/null choices, with negative controls (derivatives scaled by 0.7,
+// the collision probability without the real choice's score term) that must fail.
 #include <catch2/catch.hpp>
 
 #include <cmath>
@@ -121,22 +122,36 @@ TEST_CASE("transmittance derivative in expectation: dT/dsigma = -d T", "[medium]
     const Param p = constant_grid(sigma);
     const MajorantGrid m = build_majorants(p, 8, 2.f);
     auto sigma_t = [&](float) { return D::variable(sigma, 0); };
-    Stats ratio, delta, delta_without_scores;
+    Stats ratio, delta, collision, ratio_scaled, delta_scaled, collision_without_real;
     for (uint64_t i = 0; i < 60000; ++i) {
       TrackingSampler a(i, 1, 1), b(i, 1, 0);
-      ratio.add(ratio_tracking<D>(m, kOrigin, kDir, 0.f, d, sigma_t, a).d[0]);
+      const double ratio_derivative = ratio_tracking<D>(m, kOrigin, kDir, 0.f, d, sigma_t, a).d[0];
+      ratio.add(ratio_derivative);
       // Escape probability by delta tracking: indicator × weight; its derivative comes from the
-      // score terms the weight carries.
+      // score terms the weight carries. The collision probability 1 − T also needs the real
+      // choice's score term, FreeFlight::real.
       const FreeFlight<D> f = delta_tracking<D>(m, kOrigin, kDir, 0.f, d, sigma_t, b);
-      delta.add(f.collided ? 0.0 : f.weight.d[0]);
-      delta_without_scores.add(0.0);  // what a tracker differentiating only its returned value gives
+      const double delta_derivative = f.collided ? 0.0 : f.weight.d[0];
+      delta.add(delta_derivative);
+      collision.add(f.collided ? (f.real * f.weight).d[0] : 0.0);
+      // Negative controls: derivatives 0.7 times too small, and the collision without its score term.
+      ratio_scaled.add(0.7 * ratio_derivative);
+      delta_scaled.add(0.7 * delta_derivative);
+      collision_without_real.add(f.collided ? f.weight.d[0] : 0.0);
     }
     const double expected = -double(d) * std::exp(-double(sigma) * d);
     INFO("sigma " << sigma << ": ratio " << ratio.mean() << " ± " << ratio.stderr_() << ", delta " << delta.mean()
-                  << " ± " << delta.stderr_() << ", exact " << expected);
+                  << " ± " << delta.stderr_() << ", collision " << collision.mean() << " ± " << collision.stderr_()
+                  << ", exact " << expected << " (collision: " << -expected << "); controls: ratio × 0.7 "
+                  << ratio_scaled.mean() << " ± " << ratio_scaled.stderr_() << ", delta × 0.7 " << delta_scaled.mean()
+                  << " ± " << delta_scaled.stderr_() << ", collision without real " << collision_without_real.mean()
+                  << " ± " << collision_without_real.stderr_());
     CHECK(std::abs(ratio.mean() - expected) < 4 * ratio.stderr_() + 1e-9);
     CHECK(std::abs(delta.mean() - expected) < 4 * delta.stderr_() + 1e-9);
-    // Negative control: without the score terms the expectation is 0, far outside the band.
-    CHECK(std::abs(delta_without_scores.mean() - expected) > 4 * delta.stderr_());
+    CHECK(std::abs(collision.mean() + expected) < 4 * collision.stderr_() + 1e-9);
+    // The controls fail the same comparisons, each against its own standard error.
+    CHECK(std::abs(ratio_scaled.mean() - expected) > 4 * ratio_scaled.stderr_());
+    CHECK(std::abs(delta_scaled.mean() - expected) > 4 * delta_scaled.stderr_());
+    CHECK(std::abs(collision_without_real.mean() + expected) > 4 * collision_without_real.stderr_());
   }
 }
