@@ -187,7 +187,15 @@ bool replay_occluded(const VisibilityBits& bits, int vertex, Blocked&& query) {
 
 inline float power_heuristic(float a, float b) {
   float a2 = a * a, b2 = b * b;
-  return a2 + b2 > 0.f ? a2 / (a2 + b2) : 0.f;
+  if (a2 + b2 <= std::numeric_limits<float>::max()) return a2 + b2 > 0.f ? a2 / (a2 + b2) : 0.f;
+  // A square overflowed (the light pdf of a triangle of area 1e-20 is ~1e20): inf / inf was NaN.
+  // The same weight from the ratio of the smaller to the larger pdf.
+  if (a >= b) {
+    const float r = b / a;
+    return 1.f / (1.f + r * r);
+  }
+  const float r = a / b;
+  return r * r / (1.f + r * r);
 }
 
 inline void emitter_backprop(const Scene& scene, const EmissionRef& e, const Vec3f& adjoint, GradientAccumulator& g) {

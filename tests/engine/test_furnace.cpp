@@ -11,6 +11,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "engine/integrators/path.h"
 #include "engine/integrators/render.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
@@ -169,4 +170,39 @@ TEST_CASE("furnace: rough plastic and rough conductor of unit albedo never excee
     }
     CHECK(s.max_excess_z < 6);
   }
+}
+
+// A light of area ~1e-20 has a light-sampling pdf of ~1e20, whose square overflows float: the MIS
+// weight came out as inf / inf = NaN and the image as NaN where the light reached (exit 0). Its
+// image must be the image of a 10^6 times larger light of the same radiance, scaled by the area
+// ratio 10^-12 (a light this small acts as a point: every light sample carries L·A·cosθ·cosθ'/d²).
+TEST_CASE("a light of area 1e-20 lights the floor in proportion to its area (MIS weights stay finite)", "[furnace]") {
+  CHECK(power_heuristic(1e20f, 1.f) == 1.f);
+  CHECK(power_heuristic(1.f, 1e20f) == Approx(1e-40).margin(1e-44));
+  CHECK(power_heuristic(3.f, 4.f) == 9.f / 25.f);
+  auto scene_with = [](const std::string& name, double side) {
+    std::string dir = test::temp_dir("tiny-light-" + name);
+    std::ostringstream s;
+    s.precision(17);
+    s << R"({"integrator": {"spp": 4, "max_depth": 2, "rr_depth": 0, "seed": 3},
+      "cameras": [{"origin": [0, 2, 2], "target": [0, 0, 0], "fov": 50, "resolution": [24, 24]}],
+      "materials": {"floor": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}, "black": {"type": "diffuse", "albedo": 0}},
+      "shapes": [{"name": "floor", "type": "rectangle", "material": "floor",
+                  "transform": {"scale": 2, "rotate": {"axis": [1, 0, 0], "angle": -90}}},
+                 {"name": "lamp", "type": "mesh", "material": "black", "emitter": {"radiance": [5, 5, 5]},
+                  "positions": [[0, 1.5, 0], [)"
+      << side << R"(, 1.5, 0], [0, 1.5, )" << side << R"(]], "indices": [[0, 1, 2]]}]})";
+    std::ofstream(dir + "/scene.json") << s.str();
+    return load_scene(dir + "/scene.json");
+  };
+  const Image tiny = render(*scene_with("1e-10", 1e-10), {0, 4, 3, false});
+  const Image small = render(*scene_with("1e-4", 1e-4), {0, 4, 3, false});
+  double sum_tiny = 0, sum_small = 0;
+  for (float v : tiny.data) {
+    REQUIRE(std::isfinite(v));
+    sum_tiny += v;
+  }
+  for (float v : small.data) sum_small += v;
+  REQUIRE(sum_small > 0);
+  CHECK(sum_tiny / sum_small == Approx(1e-12).epsilon(1e-3));
 }
