@@ -254,8 +254,11 @@ struct Loader {
         m.bbox_max = grid.bbox_max;
       }
       const Vec3f extent = m.bbox_max - m.bbox_min;
-      if (!(extent.x > 0.f && extent.y > 0.f && extent.z > 0.f) || !std::isfinite(extent.x + extent.y + extent.z))
-        n.fail_at(n.has("bbox") ? "bbox" : "density", "the grid's box must have positive, finite extent");
+      // Lookups divide by the extent: a denormal one (1e-40) has an infinite reciprocal (NaN pixels).
+      if (!(extent.x > 0.f && extent.y > 0.f && extent.z > 0.f) || !std::isfinite(extent.x + extent.y + extent.z) ||
+          !std::isfinite(1.f / extent.x) || !std::isfinite(1.f / extent.y) || !std::isfinite(1.f / extent.z))
+        n.fail_at(n.has("bbox") ? "bbox" : "density",
+                  "the grid's box must have positive, finite extent (with a finite reciprocal)");
     } else if (n.has("bbox")) {
       n.fail_at("bbox", "only grid media have a box");
     }

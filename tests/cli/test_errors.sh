@@ -340,6 +340,11 @@ expect_error medium_grid_too_large "huge.vol" "exceeds the limit" -- \
   render "$(vv hugevox 's["media"]["smoke"]["density"]["file"] = "huge.vol"')" -o o.exr -q
 expect_error set_grid_too_large "huge.vol" "exceeds the limit" -- \
   render vol/scene.json -o o.exr --spp 1 --set smoke.density=vol/huge.vol -q
+# A grid box must have an extent whose reciprocal is finite: a denormal one (1e-40) gave NaN pixels.
+expect_error medium_bbox_denormal "/media/smoke/bbox" "positive, finite extent" -- \
+  render "$(vv bboxtiny 's["media"]["smoke"]["bbox"] = {"min": [0, -1, -1], "max": [1e-40, 1, 1]}')" -o o.exr -q
+expect_error medium_bbox_inverted "/media/smoke/bbox" "positive, finite extent" -- \
+  render "$(vv bboxinv 's["media"]["smoke"]["bbox"] = {"min": [1, -1, -1], "max": [0, 1, 1]}')" -o o.exr -q
 # Extinction beyond float's range (each value within its own range) or optically solid: tracking
 # never finished (a homogeneous majorant of inf steps by 0; steps of 1e-20 no longer advance t).
 expect_error medium_extinction_overflow "medium 'smoke'" "exceeds float's range" -- \
