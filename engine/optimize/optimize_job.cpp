@@ -24,6 +24,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <sstream>
 #include <string_view>
 #include <type_traits>
 
@@ -87,6 +88,7 @@ struct OptimizedParam {
   std::shared_ptr<LargeSteps> large_steps;  // a mesh's
   bool grid_large_steps = false;
   bool has_bounds = false, has_schedule = false;
+  float bounds[2] = {-1e30f, 1e30f};  // "bounds" as given (where they apply: see bounds_outside_adam)
   bool bounds_outside_adam = false;
   // λ > 0 for the parameter or one of its stages.
   bool wants_large_steps() const {
@@ -309,6 +311,7 @@ Config parse_config(const std::string& path) {
           (*b)[0].get<double>() > (*b)[1].get<double>())
         p.fail_at("bounds", "expected [lower, upper] with lower ≤ upper");
       a.lower = (*b)[0].get<float>(), a.upper = (*b)[1].get<float>();
+      op.bounds[0] = a.lower, op.bounds[1] = a.upper;
     }
     if (p.has("decay")) {
       Node d = p.child("decay");
@@ -620,6 +623,15 @@ class Job {
         if (!is_grid(param) && !param.is_image())
           throw InputError(at + "only image and grid parameters can change resolution (this one has shape " +
                            scene_->params.shape_string(p.handle) + ")");
+      }
+      if (p.has_bounds) {  // they must meet the parameter's valid range (steps are clamped into both)
+        const float lo = p.bounds[0], hi = p.bounds[1];
+        if (hi < param.lower || lo > param.upper) {
+          std::ostringstream m;
+          m << where << "/bounds: [" << lo << ", " << hi << "] lies outside the valid range [" << param.lower << ", "
+            << param.upper << "] of '" << p.name << "'";
+          throw InputError(m.str());
+        }
       }
       if (p.log_space && mesh)
         throw InputError(where + "/parametrization: \"log\" is for positive values, not a mesh's positions");
@@ -942,6 +954,15 @@ class Job {
       Param& param = scene_->params[p.handle];
       if (!p.init.is_null()) {
         apply_init(*scene_, p);
+        // A start outside the bounds would be rendered (and differentiated) once, then clamped.
+        const float lo = p.bounds[0], hi = p.bounds[1];
+        for (size_t i = 0; p.has_bounds && i < param.value.size(); ++i)
+          if (param.value[i] < lo || param.value[i] > hi) {
+            std::ostringstream m;
+            m << c_.file << ": /parameters/" << p.name << "/init: element " << i << " = " << param.value[i]
+              << " is outside the bounds [" << lo << ", " << hi << "]";
+            throw InputError(m.str());
+          }
       }
       if (!p.stages.empty()) resize_param(param, p.stages[0]);
       p.adam.reset(param.size());

@@ -638,6 +638,17 @@ PY
   else
     fail "optimize small/opt_unbounded.json: $(cat err.opt_unbounded)"
   fi
+  # Bounds that miss the valid range, and a start outside the bounds (rendered once, then
+  # clamped): a box scale bounded to [-5, -1] ran and ended at 1e-6.
+  sed -e 's/"bounds": \[0, 1\]/"bounds": [-5, -1]/' -e 's/opt_base/opt_bounds_out/' small/opt.json >small/opt_bounds_out.json
+  expect_error optimize_bounds_outside_range "/parameters/wall.albedo/bounds" "[-5, -1] lies outside the valid range [0, 1]" -- \
+    optimize small/opt_bounds_out.json -q
+  sed -e 's/"bounds": \[0, 1\], "init": 0.5/"bounds": [0.2, 0.6], "init": 0.9/' -e 's/opt_base/opt_init_out/' \
+    small/opt.json >small/opt_init_out.json
+  cases=$((cases + 1))  # in the foreground: the folder is looked for after the run
+  expect_error_now optimize_init_outside_bounds "/parameters/wall.albedo/init" "0.9 is outside the bounds [0.2, 0.6]" -- \
+    optimize small/opt_init_out.json -q
+  [ ! -e small/opt_init_out ] || fail "optimize_init_outside_bounds: the output folder was created"
 else
   fail "fixture: optimize small/opt.json: $(cat err.opt_base)"
 fi
