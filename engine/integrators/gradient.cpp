@@ -232,9 +232,17 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
   if (!rq.accumulate) dist::reduce_gradients(scene.params);
   // Float overflow (a radiance near float's limit, an adjoint of 1e38) gives inf or NaN loss and
   // gradients that would be written as results: an error naming what overflowed instead.
-  if (!std::isfinite(result.loss))
-    throw InputError(std::string(rq.adjoint_image ? "the functional sum(dI * I)" : "the loss") +
-                     " is not finite: the render or the target exceeds float's range");
+  if (!std::isfinite(result.loss)) {
+    // Name the side that is not finite: a render with NaN pixels points at the scene (its file).
+    size_t bad = 0;
+    for (float v : result.image.data) bad += !std::isfinite(v);
+    const std::string what = rq.adjoint_image ? "the functional sum(dI * I)" : "the loss";
+    if (bad)
+      throw InputError(scene.source + ": the render has " + std::to_string(bad) +
+                       " values that are NaN or infinite, so " + what + " is not finite");
+    throw InputError(what + " is not finite: the render or the " +
+                     std::string(rq.adjoint_image ? "adjoint image" : "target") + " exceeds float's range");
+  }
   for (const Param& p : scene.params.all())
     if (p.requires_grad)
       for (float g : p.grad)
