@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <sstream>
 #include <string>
 #include <unordered_map>
 
@@ -251,8 +252,22 @@ bool Scene::update_geometry() {
     }
     for (size_t k = 0; k < m.triangle_count(); ++k) {
       const float area = m.triangle_area(k);
-      if (pose.rest_areas[k] > 0 && !(area > 0.f))
-        throw InputError(where + ": triangle " + std::to_string(k) + " became degenerate (zero area)");
+      if (pose.rest_areas[k] > 0 && !(area > 0.f)) {
+        // Far from the origin float cannot tell a small triangle's corners apart: say so rather
+        // than blame the pose's shape (a translation of 1e16 flattens a box of size 0.5).
+        float far = 0.f;
+        for (int c = 0; c < 3; ++c) {
+          const Vec3f& q = m.positions[m.indices[3 * k + size_t(c)]];
+          far = std::max({far, std::abs(q.x), std::abs(q.y), std::abs(q.z)});
+        }
+        std::string why = "zero area";
+        if (double(far) * double(far) * 1e-12 > pose.rest_areas[k]) {
+          std::ostringstream s;
+          s << "zero area: at coordinates of magnitude " << far << " float cannot resolve it";
+          why = s.str();
+        }
+        throw InputError(where + ": triangle " + std::to_string(k) + " became degenerate (" + why + ")");
+      }
     }
     pose.applied = now;
     moved = true;

@@ -373,6 +373,8 @@ expect_error set_positions_ply_count "sphere.ply" "2562 vertices" "box.positions
   render "$pose" -o o.exr --set "box.positions=$repo/scenes/deform/sphere.ply"
 expect_error set_pose_nan "box.rotate" "re:NaN|not a (finite )?number" -- render "$pose" -o o.exr --set box.rotate=0,nan,0
 expect_error set_degenerate "box" "triangle 0" "degenerate" -- render "$pose" -o o.exr --set box.positions=0.5
+expect_error set_pose_far "box" "triangle 4 became degenerate" "magnitude 1e+16 float cannot resolve it" -- \
+  render "$pose" -o o.exr --set box.translate=1e16,0,0
 expect_error set_camera_nan "front.origin" "re:NaN|finite" -- render "$pose" -o o.exr --set front.origin=1,inf,0
 expect_error grad_geometry_unsupported "cornell/scene.json" "geometry gradients" "only diffuse surfaces are supported yet" "metal_cube" -- \
   grad "$cornell" --adjoint-image "$cornell_ones" --param metal_cube.translate --resolution 32x32 --spp 1 --out gglossy
