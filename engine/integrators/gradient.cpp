@@ -253,14 +253,11 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
 }
 
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
-                                        int directions, double eps, uint64_t direction_seed) {
+                                        int directions, double eps, uint64_t direction_seed, int seeds) {
   int h = scene.params.find(name);
   if (h < 0) throw InputError("unknown parameter '" + name + "' (see `backlight params`)");
+  if (seeds < 1) throw InputError("--seeds must be ≥ 1");
   scene.params.require_grad({name});
-  GradientRequest quiet = rq;
-  quiet.pass.progress = false;
-  compute_gradient(scene, quiet);
-  const std::vector<float> gradient = scene.params[h].grad;
   const std::vector<float> theta = scene.params[h].value;
 
   // Appearance parameters: the sampling tables are deliberately not rebuilt (see header). A
@@ -271,64 +268,102 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     scene.params[h].value = v;
     if (geometry) scene.prepare_sampling();
   };
-  auto loss_at = [&](const std::vector<float>& v) {
-    set_values(v);
-    Image img = render(scene, quiet.pass);
-    return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
-  };
   const float lower = scene.params[h].lower, upper = scene.params[h].upper;
+
+  // The directions and their steps first: a step outside the valid range is refused before any work.
   std::mt19937_64 rng(direction_seed);
   std::normal_distribution<double> normal;
-  std::vector<CheckRow> rows;
+  const size_t count = static_cast<size_t>(directions);
+  std::vector<std::vector<float>> plus(count), minus(count);
   for (int d = 0; d < directions; ++d) {
     // Elements are i.i.d. standard normal (not a unit vector): every element moves by about eps,
     // which keeps the perturbation far above float resolution even for million-texel buffers.
-    std::vector<double> v(theta.size());
-    for (auto& x : v) x = normal(rng);
-    CheckRow row;
-    std::vector<float> plus(theta.size()), minus(theta.size());
-    for (size_t i = 0; i < v.size(); ++i) {
-      row.adjoint += double(gradient[i]) * v[i];
-      plus[i] = float(double(theta[i]) + eps * v[i]);
-      minus[i] = float(double(theta[i]) - eps * v[i]);
-    }
-    // The adjoint side predicts the change for the step float can actually represent,
-    // ⟨∇loss, plus − minus⟩ / 2ε, so rounding of θ ± εv does not count as gradient error.
-    double predicted = 0;
-    for (size_t i = 0; i < v.size(); ++i) predicted += double(gradient[i]) * (double(plus[i]) - double(minus[i]));
-    row.adjoint = predicted / (2 * eps);
-    for (size_t i = 0; i < v.size(); ++i) {
-      if (!std::isfinite(plus[i]) || !std::isfinite(minus[i]))
+    std::vector<float>&p = plus[size_t(d)], &m = minus[size_t(d)];
+    p.resize(theta.size()), m.resize(theta.size());
+    for (size_t i = 0; i < theta.size(); ++i) {
+      const double v = normal(rng);
+      p[i] = float(double(theta[i]) + eps * v);
+      m[i] = float(double(theta[i]) - eps * v);
+      if (!std::isfinite(p[i]) || !std::isfinite(m[i]))
         throw InputError("--eps " + std::to_string(eps) + ": θ ± eps·v of '" + name + "' is not finite in float");
       // Outside the valid range the renders would show a scene --set refuses (|g| > 1, a
       // negative density): numbers without meaning.
-      if (std::min(plus[i], minus[i]) < lower || std::max(plus[i], minus[i]) > upper) {
+      if (std::min(p[i], m[i]) < lower || std::max(p[i], m[i]) > upper) {
         std::ostringstream s;
         s << "--eps " << eps << ": θ ± eps·v leaves the valid range [" << lower << ", " << upper << "] of '" << name
-          << "' (element " << i << " would be " << (plus[i] < lower || plus[i] > upper ? plus[i] : minus[i])
+          << "' (element " << i << " would be " << (p[i] < lower || p[i] > upper ? p[i] : m[i])
           << "; use a smaller --eps)";
         throw InputError(s.str());
       }
     }
-    double loss_plus = 0, loss_minus = 0;
-    try {
-      loss_plus = loss_at(plus);
-      loss_minus = loss_at(minus);
-    } catch (const InputError&) {  // e.g. a step that makes a triangle degenerate: the scene as it was
-      set_values(theta);
-      throw;
+  }
+
+  // Per seed: the adjoint's directional derivatives and the central differences of renders at that
+  // seed (common random numbers), paired.
+  std::vector<std::vector<double>> adjoint(count), fd(count);
+  for (int k = 0; k < seeds; ++k) {
+    GradientRequest quiet = rq;
+    quiet.pass.progress = false;
+    quiet.pass.seed = rq.pass.seed + uint64_t(k);
+    quiet.adjoint_seed = rq.adjoint_seed + uint64_t(k);
+    set_values(theta);
+    compute_gradient(scene, quiet);
+    const std::vector<float> gradient = scene.params[h].grad;
+    auto loss_at = [&](const std::vector<float>& v) {
+      set_values(v);
+      Image img = render(scene, quiet.pass);
+      return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
+    };
+    for (int d = 0; d < directions; ++d) {
+      const std::vector<float>&p = plus[size_t(d)], &m = minus[size_t(d)];
+      // The adjoint side predicts the change for the step float can actually represent,
+      // ⟨∇loss, plus − minus⟩ / 2ε, so rounding of θ ± εv does not count as gradient error.
+      double predicted = 0;
+      for (size_t i = 0; i < theta.size(); ++i) predicted += double(gradient[i]) * (double(p[i]) - double(m[i]));
+      adjoint[size_t(d)].push_back(predicted / (2 * eps));
+      double loss_plus = 0, loss_minus = 0;
+      try {
+        loss_plus = loss_at(p);
+        loss_minus = loss_at(m);
+      } catch (const InputError&) {  // e.g. a step that makes a triangle degenerate: the scene as it was
+        set_values(theta);
+        throw;
+      }
+      const double difference = (loss_plus - loss_minus) / (2 * eps);
+      if (!std::isfinite(difference)) {
+        set_values(theta);
+        throw InputError("--eps " + std::to_string(eps) + ": the renders at θ ± eps·v of '" + name +
+                         "' give a loss that is not finite (use a smaller --eps)");
+      }
+      fd[size_t(d)].push_back(difference);
     }
-    row.finite_difference = (loss_plus - loss_minus) / (2 * eps);
-    if (!std::isfinite(row.finite_difference)) {
-      set_values(theta);
-      throw InputError("--eps " + std::to_string(eps) + ": the renders at θ ± eps·v of '" + name +
-                       "' give a loss that is not finite (use a smaller --eps)");
-    }
-    row.relative_error =
-        std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
-    rows.push_back(row);
   }
   set_values(theta);
+
+  auto mean_and_stderr = [](const std::vector<double>& xs, double& mean, double& stderr_of_mean) {
+    mean = 0;
+    for (double x : xs) mean += x / double(xs.size());
+    double var = 0;
+    for (double x : xs) var += (x - mean) * (x - mean);
+    stderr_of_mean = xs.size() > 1 ? std::sqrt(var / double(xs.size() - 1) / double(xs.size())) : 0.0;
+  };
+  std::vector<CheckRow> rows;
+  for (int d = 0; d < directions; ++d) {
+    CheckRow row;
+    mean_and_stderr(adjoint[size_t(d)], row.adjoint, row.adjoint_stderr);
+    mean_and_stderr(fd[size_t(d)], row.finite_difference, row.fd_stderr);
+    row.relative_error =
+        std::abs(row.adjoint - row.finite_difference) / std::max(std::abs(row.finite_difference), 1e-30);
+    if (seeds > 1) {
+      std::vector<double> paired(static_cast<size_t>(seeds));
+      for (int k = 0; k < seeds; ++k) paired[size_t(k)] = adjoint[size_t(d)][size_t(k)] - fd[size_t(d)][size_t(k)];
+      double mean = 0, se = 0;
+      mean_and_stderr(paired, mean, se);
+      row.difference_stderr = se;
+      row.z = se > 0 ? mean / se : (mean == 0 ? 0.0 : std::numeric_limits<double>::infinity());
+    }
+    rows.push_back(row);
+  }
   return rows;
 }
 

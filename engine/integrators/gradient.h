@@ -1,5 +1,6 @@
 #pragma once
 // Gradient runs shared by `backlight grad`, `backlight check`, the optimizer and the tests.
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -54,9 +55,13 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
 
 // One row of a directional-derivative check.
 struct CheckRow {
-  double adjoint = 0;            // ⟨∇loss, v⟩ from the adjoint pass
-  double finite_difference = 0;  // (loss(θ+εv) − loss(θ−εv)) / 2ε, primal renders at the same seed
-  double relative_error = 0;
+  double adjoint = 0;            // ⟨∇loss, v⟩ from the adjoint pass (mean over the seeds)
+  double finite_difference = 0;  // (loss(θ+εv) − loss(θ−εv)) / 2ε, primal renders at the same seed (mean)
+  double relative_error = 0;     // of the means
+  // Over several seeds: the standard errors of the two means, and the z score of their paired
+  // differences (adjoint − finite difference at each seed); NaN for one seed.
+  double adjoint_stderr = 0, fd_stderr = 0, z = std::numeric_limits<double>::quiet_NaN();
+  double difference_stderr = 0;  // of the paired differences' mean
 };
 
 // For `directions` random directions v with i.i.d. standard-normal elements (seeded,
@@ -65,9 +70,12 @@ struct CheckRow {
 // depend on appearance parameters (environment importance sampling, medium majorants) are held
 // fixed, so both sides differentiate the same estimator; a geometry parameter re-poses the scene
 // for each render (the BVH and emitter tables follow the meshes). Steps that leave the
-// parameter's valid range are refused (InputError).
+// parameter's valid range are refused (InputError). With `seeds` > 1 both sides are averaged
+// over the render seeds seed, seed + 1, … (the adjoint seed likewise): where sampling depends on
+// the parameter (roughness, moving silhouettes) same-seed differences jump, and the check is on
+// the expectation (CheckRow::z).
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
-                                        int directions, double eps, uint64_t direction_seed);
+                                        int directions, double eps, uint64_t direction_seed, int seeds = 1);
 
 // Output helpers (atomic writes).
 void write_gradient_outputs(const Scene& scene, const GradientRequest& request, const GradientResult& result,

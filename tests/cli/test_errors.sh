@@ -469,6 +469,10 @@ expect_error check_eps_huge "--eps" "leaves the valid range [0, 1] of 'white.alb
 # A step that leaves the valid range renders a scene --set refuses (roughness above 1).
 expect_error check_eps_out_of_range "--eps 0.5" "leaves the valid range" "metal.roughness" "smaller --eps" -- \
   check "$small" --spp 1 --target t16.exr --param metal.roughness --eps 0.5 --rr-depth 0
+expect_error check_seeds_zero "--seeds" "1 .. 65536" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --seeds 0 --rr-depth 0
+expect_error check_seeds_huge "--seeds" "1 .. 65536" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --seeds 1000000 --rr-depth 0
 expect_error check_tolerance_nan "--tolerance" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --tolerance nan --rr-depth 0
 expect_error check_tolerance_negative "--tolerance" -- \
