@@ -270,7 +270,15 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
   };
   const float lower = scene.params[h].lower, upper = scene.params[h].upper;
 
-  // The directions and their steps first: a step outside the valid range is refused before any work.
+  // The directions and their steps first. Steps are clamped into the valid range (a black texel
+  // steps only upwards; the adjoint side predicts the change of the steps actually taken, below);
+  // an eps as wide as the range itself is a mistake (|g| > 1, albedos of 1e30).
+  if (double(upper) - double(lower) <= eps) {
+    std::ostringstream s;
+    s << "--eps " << eps << " is not smaller than the width of the valid range [" << lower << ", " << upper << "] of '"
+      << name << "'";
+    throw InputError(s.str());
+  }
   std::mt19937_64 rng(direction_seed);
   std::normal_distribution<double> normal;
   const size_t count = static_cast<size_t>(directions);
@@ -286,15 +294,7 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
       m[i] = float(double(theta[i]) - eps * v);
       if (!std::isfinite(p[i]) || !std::isfinite(m[i]))
         throw InputError("--eps " + std::to_string(eps) + ": θ ± eps·v of '" + name + "' is not finite in float");
-      // Outside the valid range the renders would show a scene --set refuses (|g| > 1, a
-      // negative density): numbers without meaning.
-      if (std::min(p[i], m[i]) < lower || std::max(p[i], m[i]) > upper) {
-        std::ostringstream s;
-        s << "--eps " << eps << ": θ ± eps·v leaves the valid range [" << lower << ", " << upper << "] of '" << name
-          << "' (element " << i << " would be " << (p[i] < lower || p[i] > upper ? p[i] : m[i])
-          << "; use a smaller --eps)";
-        throw InputError(s.str());
-      }
+      p[i] = std::clamp(p[i], lower, upper), m[i] = std::clamp(m[i], lower, upper);
     }
   }
 

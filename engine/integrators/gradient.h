@@ -69,8 +69,9 @@ struct CheckRow {
 // compares the adjoint with central differences at the same seed. Sampling distributions that
 // depend on appearance parameters (environment importance sampling, medium majorants) are held
 // fixed, so both sides differentiate the same estimator; a geometry parameter re-poses the scene
-// for each render (the BVH and emitter tables follow the meshes). Steps that leave the
-// parameter's valid range are refused (InputError). With `seeds` > 1 both sides are averaged
+// for each render (the BVH and emitter tables follow the meshes). Steps are clamped into the
+// parameter's valid range (the adjoint side uses the steps taken); an eps not smaller than the
+// range's width is refused (InputError). With `seeds` > 1 both sides are averaged
 // over the render seeds seed, seed + 1, … (the adjoint seed likewise): where sampling depends on
 // the parameter (roughness, moving silhouettes) same-seed differences jump, and the check is on
 // the expectation (CheckRow::z).

@@ -464,11 +464,12 @@ expect_error check_directions_limit "--directions" "exceeds the limit of" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 2000000000 --rr-depth 0
 expect_error check_eps_inf "--eps" "finite" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --eps inf --rr-depth 0
-expect_error check_eps_huge "--eps" "leaves the valid range [0, 1] of 'white.albedo'" -- \
+expect_error check_eps_huge "--eps" "not smaller than the width of the valid range [0, 1] of 'white.albedo'" -- \
   check "$small" --spp 1 --target t16.exr --param white.albedo --eps 1e30 --rr-depth 0
-# A step that leaves the valid range renders a scene --set refuses (roughness above 1).
-expect_error check_eps_out_of_range "--eps 0.5" "leaves the valid range" "metal.roughness" "smaller --eps" -- \
-  check "$small" --spp 1 --target t16.exr --param metal.roughness --eps 0.5 --rr-depth 0
+# Steps are clamped into the valid range, but a step as wide as the range rendered scenes --set
+# refuses (|g| > 1, albedos above 1).
+expect_error check_eps_range_width "--eps 1" "not smaller than the width" "white.albedo" -- \
+  check "$small" --spp 1 --target t16.exr --param white.albedo --eps 1 --rr-depth 0
 expect_error check_seeds_zero "--seeds" "1 .. 65536" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --seeds 0 --rr-depth 0
 expect_error check_seeds_huge "--seeds" "1 .. 65536" -- \
