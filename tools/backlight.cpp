@@ -294,9 +294,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                  "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
                  "on the mean over many seeds (--seeds N), not per seed.\n",
                  c.param.c_str());
-  if (c.seeds < 2 || c.seeds > 1 << 16) {
-    if (c.seeds != 1) throw InputError("--seeds must be in 1 .. 65536");
-  }
+  if (c.seeds < 1 || c.seeds > 1 << 16) throw InputError("--seeds must be in 1 .. 65536");
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed, c.seeds);
   bool ok = true;
   if (c.seeds == 1) {
