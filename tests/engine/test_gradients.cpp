@@ -51,6 +51,21 @@ GradientRequest request(const Image& target, GradientMethod m, int spp, uint64_t
   return rq;
 }
 
+// prb against same-seed central differences of `name` along 3 random directions (the code
+// `backlight check` runs): each within `tolerance`, and the differences not trivially zero.
+void check_same_seed(Scene& scene, const std::string& name, const Image& target, double eps, uint64_t direction_seed,
+                     double tolerance) {
+  INFO("parameter " << name);
+  for (const auto& r :
+       directional_check(scene, name, request(target, GradientMethod::Prb, 4), 3, eps, direction_seed)) {
+    INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
+    std::printf("%s: adjoint %.6g, finite difference %.6g, relative error %.2g\n", name.c_str(), r.adjoint,
+                r.finite_difference, r.relative_error);
+    CHECK(r.relative_error < tolerance);
+    CHECK(std::abs(r.finite_difference) > 0);
+  }
+}
+
 double norm(const std::vector<float>& v) {
   double s = 0;
   for (float x : v) s += double(x) * x;
@@ -271,15 +286,8 @@ TEST_CASE("prb matches same-seed central differences for parameters that do not 
   // The environment map moves its own importance sampling; the check holds sampling fixed, as
   // the detached-sampling estimator prb differentiates does.
   for (const char* name :
-       {"floor.albedo", "light.radiance", "environment.radiance", "plastic.albedo", "metal.specular"}) {
-    INFO("parameter " << name);
-    auto rows = directional_check(*scene, name, request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
-    for (const auto& r : rows) {
-      INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
-      CHECK(r.relative_error < 1e-2);
-      CHECK(std::abs(r.finite_difference) > 0);
-    }
-  }
+       {"floor.albedo", "light.radiance", "environment.radiance", "plastic.albedo", "metal.specular"})
+    check_same_seed(*scene, name, target, 1e-2, 11, 1e-2);
 }
 
 TEST_CASE("taped AD and prb agree to float precision on the same random numbers", "[gradient][taped]") {
@@ -399,14 +407,7 @@ TEST_CASE("metallic_roughness: prb matches same-seed differences for its base co
   o.rr_depth = 0;
   auto scene = open_scene(o);
   Image target = target_for(*scene);
-  auto rows = directional_check(*scene, "alloy.base_color", request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
-  for (const auto& r : rows) {
-    INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
-    std::printf("alloy.base_color: adjoint %.6g, finite difference %.6g, relative error %.2g\n", r.adjoint,
-                r.finite_difference, r.relative_error);
-    CHECK(r.relative_error < 1e-2);
-    CHECK(std::abs(r.finite_difference) > 0);
-  }
+  check_same_seed(*scene, "alloy.base_color", target, 1e-2, 11, 1e-2);
 }
 
 // [expectation]: not under the sanitizers; the prb == taped case above runs the same BSDF.
@@ -451,17 +452,8 @@ TEST_CASE("vertex colours: gradients of the tinted textures match same-seed diff
   auto scene = open_scene(o);
   paint_vertex_colours(*scene);
   Image target = target_for(*scene);
-  for (const char* name : {"floor.albedo", "plastic.albedo", "metal.specular", "alloy.base_color"}) {
-    INFO("parameter " << name);
-    auto rows = directional_check(*scene, name, request(target, GradientMethod::Prb, 4), 3, 1e-2, 11);
-    for (const auto& r : rows) {
-      INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
-      std::printf("vertex colours, %s: adjoint %.6g, finite difference %.6g, relative error %.2g\n", name, r.adjoint,
-                  r.finite_difference, r.relative_error);
-      CHECK(r.relative_error < 1e-2);
-      CHECK(std::abs(r.finite_difference) > 0);
-    }
-  }
+  for (const char* name : {"floor.albedo", "plastic.albedo", "metal.specular", "alloy.base_color"})
+    check_same_seed(*scene, name, target, 1e-2, 11, 1e-2);
 }
 
 TEST_CASE("a textured area light and a constant environment: prb matches taped AD and same-seed differences",
@@ -486,16 +478,8 @@ TEST_CASE("a textured area light and a constant environment: prb matches taped A
   // No sampling decision reads an emitted radiance (lights are picked uniformly, points on them
   // by area, directions to the constant sky uniformly; roulette reads the path throughput only),
   // so same-seed differences are exact even with roulette on.
-  for (const auto& [name, eps] : {std::pair{"light.radiance", 0.05}, std::pair{"environment.radiance", 0.01}}) {
-    INFO("parameter " << name);
-    for (const auto& r : directional_check(*scene, name, request(target, GradientMethod::Prb, 4), 3, eps, 13)) {
-      INFO("adjoint " << r.adjoint << " finite difference " << r.finite_difference);
-      std::printf("%s: adjoint %.6g, finite difference %.6g, relative error %.2g\n", name, r.adjoint,
-                  r.finite_difference, r.relative_error);
-      CHECK(r.relative_error < 1e-3);
-      CHECK(std::abs(r.finite_difference) > 0);
-    }
-  }
+  for (const auto& [name, eps] : {std::pair{"light.radiance", 0.05}, std::pair{"environment.radiance", 0.01}})
+    check_same_seed(*scene, name, target, eps, 13, 1e-3);
 }
 
 TEST_CASE("roughness and metallic bitmaps: prb matches taped AD on the same random numbers",

@@ -3,8 +3,12 @@
 // own their randomness so that a failure reproduces from the seed printed with it, independently
 // of the renderer's PathSampler (which has its own tests).
 #include <cstdint>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "engine/core/math.h"
+#include "engine/core/params.h"
 
 namespace bl::test {
 
@@ -35,6 +39,17 @@ class TestRng {
   }
   uint64_t state_;
 };
+
+// A parameter of the given shape with values uniform in [lo, hi).
+inline Param random_param(const std::string& name, std::vector<int> shape, double lo, double hi, TestRng& rng) {
+  Param p;
+  p.name = name;
+  p.shape = std::move(shape);
+  size_t size = 1;
+  for (int s : p.shape) size *= size_t(s);
+  for (size_t i = 0; i < size; ++i) p.value.push_back(float(rng.uniform(lo, hi)));
+  return p;
+}
 
 // The direction at polar angle θ (from +z) and azimuth φ.
 inline Vec3f spherical_direction(double theta, double phi) {

@@ -24,13 +24,7 @@ namespace {
 constexpr double kRelTolerance = 1e-3, kAbsFloor = 1e-6;
 
 int add_param(ParamStore& store, const std::string& name, std::vector<int> shape, double lo, double hi, TestRng& rng) {
-  Param p;
-  p.name = name;
-  p.shape = std::move(shape);
-  size_t size = 1;
-  for (int s : p.shape) size *= size_t(s);
-  for (size_t i = 0; i < size; ++i) p.value.push_back(float(rng.uniform(lo, hi)));
-  return store.add(std::move(p));
+  return store.add(random_param(name, std::move(shape), lo, hi, rng));
 }
 
 struct MaterialCase {

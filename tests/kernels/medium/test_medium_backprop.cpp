@@ -47,16 +47,6 @@ constexpr double kPhaseRel = 1e-4, kPhaseStep = 1e-5, kMaxG = 0.8;
 // A negative control is meaningful only where the gradient is not negligible against the floor.
 constexpr double kControllableNorm = 1e-5;
 
-Param make_param(const std::string& name, std::vector<int> shape, double lo, double hi, TestRng& rng) {
-  Param p;
-  p.name = name;
-  p.shape = std::move(shape);
-  size_t size = 1;
-  for (int s : p.shape) size *= size_t(s);
-  for (size_t i = 0; i < size; ++i) p.value.push_back(float(rng.uniform(lo, hi)));
-  return p;
-}
-
 struct MediumCase {
   std::string label;
   std::vector<int> density_shape;  // [1]: a homogeneous medium; [Z, Y, X, 1]: a grid medium
@@ -92,10 +82,10 @@ TestMedium make_medium(const MediumCase& c, uint64_t seed) {
   Medium& m = t.medium;
   m.name = "fog";
   m.grid = c.density_shape.size() == 4;
-  m.density = t.store.add(make_param("fog.density", c.density_shape, c.density_lo, c.density_hi, rng));
-  m.albedo = t.store.add(make_param("fog.albedo", c.albedo_shape, 0.1, 0.95, rng));
-  m.scale = t.store.add(make_param("fog.scale", {1}, 1.2, 1.8, rng));
-  if (c.hg) m.g = t.store.add(make_param("fog.g", {1}, -kMaxG, kMaxG, rng));
+  m.density = t.store.add(random_param("fog.density", c.density_shape, c.density_lo, c.density_hi, rng));
+  m.albedo = t.store.add(random_param("fog.albedo", c.albedo_shape, 0.1, 0.95, rng));
+  m.scale = t.store.add(random_param("fog.scale", {1}, 1.2, 1.8, rng));
+  if (c.hg) m.g = t.store.add(random_param("fog.g", {1}, -kMaxG, kMaxG, rng));
   if (m.grid) m.bbox_min = {-1.f, 0.5f, 2.f}, m.bbox_max = {1.5f, 1.7f, 2.8f};
   m.block = c.block;
   t.store.require_grad({});
@@ -196,6 +186,14 @@ struct ShaderSummary {
     ++controls;
     controls_failed += !c.control.ok;
   }
+  // Every comparison within its tolerance, more than `min_controls` controls, and all of them failed.
+  void require(const std::string& label, int min_controls) const {
+    INFO(label << ": worst error " << worst_ratio << " of the tolerance; " << controls_failed << " of " << controls
+               << " controls failed");
+    CHECK(worst_ratio <= 1.0);
+    CHECK(controls > min_controls);
+    CHECK(controls_failed == controls);
+  }
 };
 
 void require_shader(const ShaderCheck& c, const std::string& what) {
@@ -228,11 +226,7 @@ TEST_CASE("sigma_t backprop matches central differences for every voxel and the 
         summary.add(c);
       }
     }
-    INFO(mc.label << ": worst error " << summary.worst_ratio << " of the tolerance; " << summary.controls_failed
-                  << " of " << summary.controls << " controls failed");
-    CHECK(summary.worst_ratio <= 1.0);
-    CHECK(summary.controls > 0);
-    CHECK(summary.controls_failed == summary.controls);
+    summary.require(mc.label, 0);
   }
 }
 
@@ -251,11 +245,7 @@ TEST_CASE("albedo backprop matches central differences for every voxel and chann
       require_shader(c, mc.label + ": albedo at " + describe(x) + ", adjoint " + describe(adjoint));
       summary.add(c);
     }
-    INFO(mc.label << ": worst error " << summary.worst_ratio << " of the tolerance; " << summary.controls_failed
-                  << " of " << summary.controls << " controls failed");
-    CHECK(summary.worst_ratio <= 1.0);
-    CHECK(summary.controls > 0);
-    CHECK(summary.controls_failed == summary.controls);
+    summary.require(mc.label, 0);
   }
 }
 
@@ -281,11 +271,7 @@ TEST_CASE("phase backprop matches central differences in g", "[medium][gradient]
                             describe(wo) + ", adjoint " + std::to_string(adjoint));
       summary.add(c);
     }
-    INFO(mc.label << ": worst error " << summary.worst_ratio << " of the tolerance; " << summary.controls_failed
-                  << " of " << summary.controls << " controls failed");
-    CHECK(summary.worst_ratio <= 1.0);
-    CHECK(summary.controls > 300);
-    CHECK(summary.controls_failed == summary.controls);
+    summary.require(mc.label, 300);
   }
 }
 
