@@ -1,11 +1,13 @@
 #pragma once
-// Null-collision tracking through a heterogeneous medium against block majorants (grid.h):
-// delta tracking for free-flight sampling (Woodcock et al. 1965) and ratio tracking for the
-// transmittance of shadow rays (Novák et al. 2014).
+// Null-collision tracking through a medium against its majorants (block majorants of a grid,
+// grid.h, or one constant): delta tracking for free-flight sampling (Woodcock et al. 1965) and
+// ratio tracking for the transmittance of shadow rays (Novák et al. 2014). The tracking loops are
+// medium_free_flight and medium_transmittance (medium.h); this header holds what they share, the
+// free flight's result and the tracking's random numbers.
 //
 // Differentiation (DESIGN.md, "Media"): the tentative collision distances depend only on the
-// majorant, a detached constant, so ratio tracking's estimate Π(1 − σ_t(x_i)/σ̄) is a smooth
-// function of σ_t and its T-valued product differentiates correctly as written. Delta tracking
+// majorant, a detached constant, so medium_transmittance's estimate Π(1 − σ_t(x_i)/σ̄) is a smooth
+// function of σ_t and its T-valued product differentiates correctly as written. medium_free_flight
 // *chooses* between a real and a null collision with probabilities σ_t/σ̄ and 1 − σ_t/σ̄, which
 // depend on the parameters; differentiating only the returned weight would miss that. Each choice
 // therefore multiplies the T-valued weight by its probability over the detached probability,
@@ -21,11 +23,9 @@
 // counter-based stream (TrackingSampler), a pure function of the path's key, the vertex and a
 // stream id, so a replay of the same path regenerates exactly the same draws however many there
 // were, and the fixed per-vertex dimensions of engine/core/sampler.h are untouched.
-#include <cmath>
 #include <cstdint>
 
 #include "engine/core/sampler.h"
-#include "kernels/medium/grid.h"
 
 namespace bl {
 
@@ -45,55 +45,11 @@ class TrackingSampler {
 
 template <class T>
 struct FreeFlight {
-  bool collided = false;  // a real collision at t (else the ray left [t_min, t_max) unscattered)
+  bool collided = false;  // a real collision at t (else the ray left [0, t_max) unscattered)
   float t = 0.f;
   T weight = T(1.f);  // 1 in value; carries the score terms of the null choices
   T real = T(1.f);    // 1 in value; the score term of the real choice (when collided)
   int null_collisions = 0;
 };
-
-// Delta tracking along o + t·d (local grid coordinates; t is the caller's distance unit, the
-// majorants are per unit of t). sigma_t(t) returns σ_t at the tentative point as T.
-template <class T, class SigmaT>
-FreeFlight<T> delta_tracking(const MajorantGrid& m, const Vec3f& o, const Vec3f& d, float t_min, float t_max,
-                             SigmaT&& sigma_t, TrackingSampler& rng) {
-  FreeFlight<T> out;
-  traverse_majorants(m, o, d, t_min, t_max, [&](const MajorantSegment& seg) {
-    if (!(seg.majorant > 0.f)) return true;
-    float t = seg.t0;
-    for (;;) {
-      t -= std::log(1.f - rng.next()) / seg.majorant;
-      if (!(t < seg.t1)) return true;  // memoryless: the next segment starts afresh
-      const T sigma = sigma_t(t);
-      const float sigma_value = value_of(sigma);
-      if (rng.next() * seg.majorant < sigma_value) {
-        out.collided = true;
-        out.t = t;
-        out.real = sigma / sigma_value;
-        return false;
-      }
-      out.weight = out.weight * ((seg.majorant - sigma) / (seg.majorant - sigma_value));
-      ++out.null_collisions;
-    }
-  });
-  return out;
-}
-
-// Ratio tracking: an unbiased estimate of exp(−∫σ_t) over [t_min, t_max].
-template <class T, class SigmaT>
-T ratio_tracking(const MajorantGrid& m, const Vec3f& o, const Vec3f& d, float t_min, float t_max, SigmaT&& sigma_t,
-                 TrackingSampler& rng) {
-  T transmittance = T(1.f);
-  traverse_majorants(m, o, d, t_min, t_max, [&](const MajorantSegment& seg) {
-    if (!(seg.majorant > 0.f)) return true;
-    float t = seg.t0;
-    for (;;) {
-      t -= std::log(1.f - rng.next()) / seg.majorant;
-      if (!(t < seg.t1)) return true;
-      transmittance = transmittance * (T(1.f) - sigma_t(t) / seg.majorant);
-    }
-  });
-  return transmittance;
-}
 
 }  // namespace bl

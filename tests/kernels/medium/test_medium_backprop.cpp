@@ -27,6 +27,7 @@
 #include "engine/core/tape.h"
 #include "kernels/medium/medium.h"
 #include "tests/kernels/gradcheck.h"
+#include "tests/kernels/medium/medium_fixtures.h"
 #include "tests/kernels/test_rng.h"
 
 using namespace bl;
@@ -69,31 +70,20 @@ const std::vector<MediumCase>& shader_cases() {
   return cases;
 }
 
-struct TestMedium {
-  ParamStore store;
-  Medium medium;
-};
-
-// A medium "fog" with random values, every parameter wanting gradients; a grid medium fills a box
-// that is not the unit cube, so that to_local scales and translates.
+// A medium "fog" with random values (prepare_test_medium: every parameter wanting gradients, a
+// grid in a box that is not the unit cube).
 TestMedium make_medium(const MediumCase& c, uint64_t seed) {
   TestRng rng(seed);
   TestMedium t;
   Medium& m = t.medium;
-  m.name = "fog";
-  m.grid = c.density_shape.size() == 4;
   m.density = t.store.add(random_param("fog.density", c.density_shape, c.density_lo, c.density_hi, rng));
   m.albedo = t.store.add(random_param("fog.albedo", c.albedo_shape, 0.1, 0.95, rng));
   m.scale = t.store.add(random_param("fog.scale", {1}, 1.2, 1.8, rng));
   if (c.hg) m.g = t.store.add(random_param("fog.g", {1}, -kMaxG, kMaxG, rng));
-  if (m.grid) m.bbox_min = {-1.f, 0.5f, 2.f}, m.bbox_max = {1.5f, 1.7f, 2.8f};
   m.block = c.block;
-  t.store.require_grad({});
-  m.prepare(t.store);
+  prepare_test_medium(t);
   return t;
 }
-
-Vec3f to_world(const Medium& m, const Vec3f& local) { return m.bbox_min + local * (m.bbox_max - m.bbox_min); }
 
 // Lookup points in world space: random in the box; within 0.3 of a face, where the lookups of the
 // coarser grids clamp; on faces and at corners; at voxel centres of `n` (weights 1 and 0); and up
@@ -312,12 +302,6 @@ TEST_CASE("medium backprop writes only into the parameters that want gradients",
 // terms of delta tracking's real/null choices (FreeFlight::weight and ::real, tracking.h).
 namespace {
 
-struct RaySegment {
-  std::string label;
-  Vec3f origin, direction;  // world space; the direction has unit length
-  float length;             // may be infinite
-};
-
 struct TrackingCase {
   MediumCase medium;
   RaySegment ray;
@@ -335,20 +319,6 @@ double outcome_collided(double t) { return 1.0 + kSlope * t; }
 struct TrackingExpectation {
   double transmittance = 1, outcome = 0;
 };
-
-// The part of [0, length] inside the medium: all of it for a homogeneous medium; for a grid, the
-// part inside its box (a slab test of its own, not traverse_majorants').
-std::pair<double, double> inside_interval(const Medium& m, const RaySegment& r) {
-  double t0 = 0, t1 = r.length;
-  if (!m.grid) return {t0, t1};
-  for (int a = 0; a < 3; ++a) {
-    double near = (double(m.bbox_min[a]) - r.origin[a]) / r.direction[a],
-           far = (double(m.bbox_max[a]) - r.origin[a]) / r.direction[a];
-    if (near > far) std::swap(near, far);
-    t0 = std::max(t0, near), t1 = std::min(t1, far);
-  }
-  return {t0, std::max(t0, t1)};
-}
 
 // Homogeneous (σ = scale · density, constant): Beer–Lambert, T = e^{−σL}, and
 //   E[f] = ∫₀^L σ e^{−σt} (1 + a t) dt + h E = (1 − E)(1 + a/σ) − a L E + h E,  E = e^{−σL}
@@ -458,16 +428,6 @@ ExpectationComparison compare_in_expectation(const GradientSamples& s, const std
   o << "worst z " << c.worst_z << " at " << names[worst] << " over " << read.size() << " elements\n";
   c.report = o.str();
   return c;
-}
-
-// The gradient of y with respect to every parameter element (flat numbering), by the taped mode's
-// reverse sweep.
-void taped_gradient(const Tape& tape, const Var& y, std::vector<float>& adjoint, std::vector<double>& out) {
-  std::fill(out.begin(), out.end(), 0.0);
-  if (!y.active()) return;
-  adjoint.assign(tape.size(), 0.f);
-  adjoint[y.index] = 1.f;
-  reverse_sweep(tape, adjoint, [&](uint32_t flat, float g) { out[flat] += double(g); });
 }
 
 // Moves what derivative shaders added into Param::grad to `out` (flat numbering), zeroing it.
