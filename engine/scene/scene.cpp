@@ -122,6 +122,32 @@ void Scene::prepare_sampling_only() {
   }
 }
 
+std::vector<std::string> Scene::camera_medium_warnings() const {
+  std::vector<std::string> out;
+  if (media.empty()) return out;
+  auto medium_name = [&](int m) { return m < 0 ? std::string("no medium") : "medium '" + media[size_t(m)].name + "'"; };
+  for (const Camera& cam : cameras) {
+    // Rays through the film's centre and corners: the first surface each meets, when it is a
+    // medium boundary, tells from its normal which medium the camera looks out of.
+    const float w = float(cam.width), h = float(cam.height);
+    for (const auto& [px, py] : {std::pair{0.5f, 0.5f}, {0.f, 0.f}, {1.f, 0.f}, {0.f, 1.f}, {1.f, 1.f}}) {
+      const Ray ray = cam.generate(px * w, py * h);
+      const Hit hit = geometry->intersect(ray);
+      if (hit.mesh < 0) continue;
+      const Mesh& mesh = meshes[size_t(hit.mesh)];
+      if (!mesh.medium_transition()) continue;
+      const Vec3f ng = mesh.face_normals[size_t(hit.triangle)];
+      const int before = dot(ray.direction, ng) < 0.f ? mesh.exterior : mesh.interior;
+      if (before == cam.medium) continue;
+      out.push_back("backlight: " + source + ": warning: camera '" + cam.name + "' is in " + medium_name(cam.medium) +
+                    ", but its view meets shape '" + mesh.name + "' from the side of " + medium_name(before) +
+                    " (set the camera's \"medium\", or check the shape's interior/exterior and its normals)");
+      break;
+    }
+  }
+  return out;
+}
+
 bool Scene::occluded(const Vec3f& o, const Vec3f& d, float tmax) const {
   if (!has_null_surfaces) return geometry->occluded(o, d, tmax);
   return walk_shadow_segment(*this, o, d, tmax, -1, true, [](int, const Vec3f&, float) { return true; });

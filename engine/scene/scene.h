@@ -149,6 +149,11 @@ struct Scene {
   bool update_geometry();
   void prepare_geometry();       // face normals, emitter tables, BVH, cameras' frames
   void prepare_sampling_only();  // environment distribution and medium majorants
+  // Cameras whose declared medium contradicts the geometry: the first surface a view ray meets is
+  // a medium boundary seen from another medium's side (a camera declared inside "fog" but outside
+  // its boundary fogs the whole view; one inside a boundary without "medium" sees no fog near it).
+  // One warning line per such camera, for the loaders to print; needs prepare().
+  std::vector<std::string> camera_medium_warnings() const;
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }

@@ -874,3 +874,26 @@ TEST_CASE("a log parametrization steps by factors, with and without large steps"
   const std::vector<float> high = run("high", 3.9, log);
   CHECK(*std::max_element(high.begin(), high.end()) == 4.f);
 }
+
+// A camera's declared medium against the geometry: declared in the fog while outside its box (the
+// whole view fogged), or inside the box while declared in no medium (no fog near it), is one
+// warning line; a consistent camera none.
+TEST_CASE("cameras whose declared medium contradicts the boundaries they look through are warned about", "[media]") {
+  auto scene = fog_scene();  // outside the box, no medium: consistent
+  CHECK(scene->camera_medium_warnings().empty());
+  Camera& cam = scene->cameras[0];
+  cam.medium = 0;
+  auto warnings = scene->camera_medium_warnings();
+  REQUIRE(warnings.size() == 1);
+  CHECK_THAT(warnings[0], Catch::Contains("warning: camera") && Catch::Contains("is in medium 'fog'") &&
+                              Catch::Contains("shape 'box' from the side of no medium"));
+  // Inside the box, looking at its far wall.
+  cam.origin = {0.f, 0.f, 0.2f};
+  cam.target = {0.f, 0.f, -1.f};
+  cam.update();
+  CHECK(scene->camera_medium_warnings().empty());
+  cam.medium = -1;
+  warnings = scene->camera_medium_warnings();
+  REQUIRE(warnings.size() == 1);
+  CHECK_THAT(warnings[0], Catch::Contains("is in no medium") && Catch::Contains("from the side of medium 'fog'"));
+}
