@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstring>
 #include <exception>
 #include <map>
 #include <memory>
@@ -184,7 +185,14 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
       if (py::isinstance<py::str>(value)) {
         const std::string file = py::str(value);
         if (file.empty()) throw InputError("set: '" + name + "': an empty file name");
-        apply_override(*s->scene, name + "=" + file);
+        try {
+          apply_override(*s->scene, name + "=" + file);
+        } catch (const InputError& e) {  // its messages speak of the CLI's --set
+          std::string m = e.what();
+          for (const char* prefix : {"--set: ", "--set "})
+            if (m.rfind(prefix, 0) == 0) m = "set: " + m.substr(std::strlen(prefix));
+          throw InputError(m);
+        }
         continue;
       }
       auto numbers = py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(value);

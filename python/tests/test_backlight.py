@@ -155,6 +155,8 @@ def test_renders_release_the_gil(scene):
     (lambda s: backlight.load(CORNELL, set={"light.radiance=1": 2}), "unknown parameter 'light.radiance=1'"),
     (lambda s: backlight.load(CORNELL, set={"light.radiance": True}), "expected a number"),
     (lambda s: backlight.load(CORNELL, set={"light.radiance": ["a", "b", "c"]}), "expected a number"),
+    # A string that is neither a file nor numbers: the message speaks of set=, not the CLI's --set.
+    (lambda s: backlight.load(CORNELL, set={"white.albedo": "abc"}), "set: white.albedo: 'abc' is neither numbers"),
     # Messages quoting bytes that are not UTF-8 (a PNG read as JSON; a bytes path) came through empty.
     (lambda s: backlight.load(os.path.join(ROOT, "scenes", "cornell", "wall.png")), "malformed JSON"),
     (lambda s: backlight.load(b"/nonexistent/\xff.json"), "/nonexistent/\\xff.json: file not found"),
