@@ -36,9 +36,9 @@ inline constexpr int kNodeDepth = 64;               // nesting of glTF nodes
 // ray offsets computed from them must stay finite in float arithmetic (Embree aborts on NaN rays).
 inline constexpr double kCoordinate = 1e18;
 // Expected tentative collisions of delta and ratio tracking across one majorant block of a grid
-// medium, or across the scene for a homogeneous one (majorant × length): beyond it a medium is
-// optically solid (transmittance e^-1e6) and tracking it would take hours (at ~1e20 steps no
-// longer advance in float: a hang).
+// medium (majorant × block diagonal): beyond it the block is optically solid (transmittance
+// e^-1e6) and tracking its thin parts would take hours (at ~1e20 steps no longer advance in
+// float: a hang).
 inline constexpr double kOpticalDepth = 1e6;
 
 // a · b, or false when it does not fit in 64 bits.

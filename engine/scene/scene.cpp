@@ -4,7 +4,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <sstream>
 
 #include "engine/core/limits.h"
@@ -65,20 +64,16 @@ void Scene::prepare_geometry() {
     double total = 0;
     for (size_t t = 0; t < areas.size(); ++t) total += areas[t] = m.triangle_area(t);
     // No area to emit from: every light sample's pdf would divide by zero (an image of NaN).
-    if (!(total > 0.0) || !std::isfinite(float(total)))
+    if (!(total > 0.0))
       throw InputError(source + ": emitter '" + m.name + "': its triangles have no area (every one is degenerate)");
+    if (!std::isfinite(float(total)))
+      throw InputError(source + ": emitter '" + m.name + "': its total area exceeds float's range");
     e.total_area = float(total);
     e.triangle_cdf.resize(areas.size());
     double run = 0;
     for (size_t t = 0; t < areas.size(); ++t) e.triangle_cdf[t] = float((run += areas[t]) / total);
     if (!e.triangle_cdf.empty()) e.triangle_cdf.back() = 1.f;
   }
-  Vec3f lo(std::numeric_limits<float>::max()), hi(-std::numeric_limits<float>::max());
-  for (const auto& m : meshes)
-    for (size_t v = 0; v < m.vertex_count(); ++v)
-      for (int k = 0; k < 3; ++k)
-        lo[k] = std::min(lo[k], m.positions[v][k]), hi[k] = std::max(hi[k], m.positions[v][k]);
-  extent = meshes.empty() ? 0.f : length(hi - lo);
   geometry = std::make_unique<Geometry>();
   geometry->build(meshes);
   has_null_surfaces = false;
@@ -95,27 +90,26 @@ void Scene::prepare_sampling_only() {
   environment.prepare(params);
   for (auto& m : media) {
     m.prepare(params);
-    // Tracking takes ~majorant × length steps: a medium whose density × scale overflows or is
-    // optically solid over a majorant block (a homogeneous one: over the scene) would never finish.
-    float length_scale = extent, majorant = m.homogeneous_majorant;
-    if (m.grid) {
-      const GridSize g = grid_size(params[m.density]);
-      const Vec3f size = m.bbox_max - m.bbox_min;
-      const Vec3f block{size.x * float(std::min(m.block, g.x)) / float(g.x),
-                        size.y * float(std::min(m.block, g.y)) / float(g.y),
-                        size.z * float(std::min(m.block, g.z)) / float(g.z)};
-      length_scale = length(block);
-      majorant = m.majorants.max();
-    }
+    // An infinite majorant steps by 0 for ever. In a grid, tracking crosses the thin parts of a
+    // block at ~majorant × length null collisions: an optically solid block would never finish.
+    // (A homogeneous medium's collisions are real with probability 1 / headroom, and its ratio
+    // tracking reaches 0 in a few hundred steps: any finite majorant ends.)
+    const float majorant = m.grid ? m.majorants.max() : m.homogeneous_majorant;
     if (!std::isfinite(majorant))
       throw InputError(source + ": medium '" + m.name +
                        "': its extinction (density × scale × majorant headroom) exceeds float's range");
-    const double depth = double(majorant) * double(length_scale);
+    if (!m.grid) continue;
+    const GridSize g = grid_size(params[m.density]);
+    const Vec3f size = m.bbox_max - m.bbox_min;
+    const Vec3f block{size.x * float(std::min(m.block, g.x)) / float(g.x),
+                      size.y * float(std::min(m.block, g.y)) / float(g.y),
+                      size.z * float(std::min(m.block, g.z)) / float(g.z)};
+    const double depth = double(majorant) * double(length(block));
     if (depth > limits::kOpticalDepth) {
       std::ostringstream s;
       s << source << ": medium '" << m.name << "': extinction up to " << majorant
-        << " (density × scale × majorant headroom) makes ~" << depth << " tracking steps across "
-        << (m.grid ? "one majorant block" : "the scene") << ", beyond the limit of " << limits::kOpticalDepth
+        << " (density × scale × majorant headroom) makes ~" << depth
+        << " tracking steps across one majorant block, beyond the limit of " << limits::kOpticalDepth
         << " (an optically solid medium: lower its density or scale)";
       throw InputError(s.str());
     }

@@ -127,7 +127,6 @@ struct Scene {
   IntegratorSettings settings;
   std::unique_ptr<Geometry> geometry;
   bool has_null_surfaces = false;        // derived by prepare()
-  float extent = 0.f;                    // diagonal of the meshes' bounding box, derived by prepare()
   std::vector<MeshPose> mesh_poses;      // per mesh, after add_geometry_params()
   std::vector<CameraPose> camera_poses;  // per camera
   // Set when update_geometry re-posed something and cleared once prepare_geometry has rebuilt

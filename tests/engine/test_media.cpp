@@ -897,3 +897,15 @@ TEST_CASE("cameras whose declared medium contradicts the boundaries they look th
   REQUIRE(warnings.size() == 1);
   CHECK_THAT(warnings[0], Catch::Contains("is in no medium") && Catch::Contains("from the side of medium 'fog'"));
 }
+
+// An optically thick homogeneous medium is not refused and renders quickly: its collisions are
+// real with probability 1 / headroom and its shadow rays' ratio tracking reaches 0 in a few
+// hundred steps (only an infinite majorant, or a grid block with thin parts, would not end).
+TEST_CASE("a homogeneous medium of density 1e12 renders (opaque smoke, no refusal)", "[media]") {
+  FogOptions o;
+  o.homogeneous = 1e12f;
+  o.resolution = 16;
+  auto scene = fog_scene(o);
+  const Image img = render(*scene, {0, 4, 1, false});
+  for (float v : img.data) REQUIRE(std::isfinite(v));
+}
