@@ -10,6 +10,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -114,12 +115,88 @@ void refresh(PyScene& s) {
   s.scene->prepare_sampling();
 }
 
+// Keyword arguments are converted here rather than by pybind11's casters, whose TypeError
+// ("incompatible function arguments") named neither the argument nor the problem.
+std::string type_name(const py::handle& v) { return py::str(v.get_type().attr("__name__")); }
+std::string repr_of(const py::handle& v) { return py::repr(v); }
+
+py::int_ index_arg(const py::object& v, const std::string& name) {
+  if (py::isinstance<py::bool_>(v) || !PyIndex_Check(v.ptr()))
+    throw InputError(name + ": expected an integer, got " + type_name(v) + " " + repr_of(v));
+  PyObject* i = PyNumber_Index(v.ptr());
+  if (!i) throw py::error_already_set();
+  return py::reinterpret_steal<py::int_>(i);
+}
+
+std::optional<int> int_arg(const py::object& v, const std::string& name, long long lo, long long hi) {
+  if (v.is_none()) return std::nullopt;
+  const py::int_ i = index_arg(v, name);
+  int overflow = 0;
+  const long long x = PyLong_AsLongLongAndOverflow(i.ptr(), &overflow);
+  if (overflow || x < lo || x > hi)
+    throw InputError(name + ": " + repr_of(v) + " is out of range (" + std::to_string(lo) + ".." + std::to_string(hi) +
+                     ")");
+  return int(x);
+}
+
+std::optional<uint64_t> seed_arg(const py::object& v, const std::string& name) {
+  if (v.is_none()) return std::nullopt;
+  const py::int_ i = index_arg(v, name);
+  const unsigned long long x = PyLong_AsUnsignedLongLong(i.ptr());
+  if (PyErr_Occurred()) {
+    PyErr_Clear();
+    throw InputError(name + ": " + repr_of(v) + " is out of range (an integer in 0..2^64 - 1)");
+  }
+  return uint64_t(x);
+}
+
+std::optional<std::pair<int, int>> resolution_arg(const py::object& v) {
+  if (v.is_none()) return std::nullopt;
+  if (!(py::isinstance<py::tuple>(v) || py::isinstance<py::list>(v)) || py::len(v) != 2)
+    throw InputError("resolution: expected (width, height), got " + repr_of(v));
+  const py::sequence wh = py::reinterpret_borrow<py::sequence>(v);
+  const py::object w = wh[0], h = wh[1];
+  return std::pair{*int_arg(w, "resolution: width", 1, 16384), *int_arg(h, "resolution: height", 1, 16384)};
+}
+
+std::string str_arg(const py::object& v, const std::string& name) {
+  if (!py::isinstance<py::str>(v)) throw InputError(name + ": expected a str, got " + type_name(v) + " " + repr_of(v));
+  return v.cast<std::string>();
+}
+
+// params=: a list (or tuple) of parameter names, each known to the scene.
+std::optional<std::vector<std::string>> names_arg(const py::object& v, const ParamStore& store) {
+  if (v.is_none()) return std::nullopt;
+  if (py::isinstance<py::str>(v))
+    throw InputError("params: expected a list of parameter names, got the str " + repr_of(v) + " (params=[" +
+                     repr_of(v) + "])");
+  if (!(py::isinstance<py::list>(v) || py::isinstance<py::tuple>(v)))
+    throw InputError("params: expected a list of parameter names, got " + type_name(v));
+  std::vector<std::string> names;
+  for (const py::handle& item : v) {
+    const std::string name = str_arg(py::reinterpret_borrow<py::object>(item), "params");
+    if (store.find(name) < 0) throw InputError("params: unknown parameter '" + name + "' (see scene.params)");
+    names.push_back(name);
+  }
+  return names;
+}
+
 struct PassArgs {
   std::optional<int> spp;
   std::optional<uint64_t> seed;
   int camera = 0;
   std::optional<std::pair<int, int>> resolution;  // (width, height)
 };
+
+PassArgs pass_args(const py::object& spp, const py::object& seed, const py::object& camera,
+                   const py::object& resolution) {
+  PassArgs a;
+  a.spp = int_arg(spp, "spp", 1, int(limits::kSpp));
+  a.seed = seed_arg(seed, "seed");
+  a.camera = int_arg(camera, "camera", INT32_MIN, INT32_MAX).value_or(0);  // range: CameraScope
+  a.resolution = resolution_arg(resolution);
+  return a;
+}
 
 // Applies a pass's camera and resolution; restores the camera's film size when destroyed.
 class CameraScope {
@@ -161,6 +238,25 @@ PassOptions pass_options(const Scene& scene, const PassArgs& a) {
   o.seed = a.seed.value_or(scene.settings.seed);
   o.progress = false;
   return o;
+}
+
+std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::dict>& set, std::optional<int> max_depth,
+                              std::optional<int> rr_depth);
+
+// load's arguments: a path (str or os.PathLike), {name: value} overrides, depths.
+std::unique_ptr<PyScene> load_py(const py::object& path, const py::object& set, const py::object& max_depth,
+                                 const py::object& rr_depth) {
+  if (!py::isinstance<py::str>(path) && !py::isinstance<py::bytes>(path) && !py::hasattr(path, "__fspath__"))
+    throw InputError("path: expected a file name (str, bytes or os.PathLike), got " + type_name(path));
+  const py::object name = py::module_::import("os").attr("fspath")(path);
+  std::optional<py::dict> overrides;
+  if (!set.is_none()) {
+    if (!py::isinstance<py::dict>(set))
+      throw InputError("set: expected a dict {name: value}, got " + type_name(set) + " " + repr_of(set));
+    overrides = py::reinterpret_borrow<py::dict>(set);
+  }
+  return load(name.cast<std::string>(), overrides, int_arg(max_depth, "max_depth", -1, 1 << 20),
+              int_arg(rr_depth, "rr_depth", 0, 1 << 20));
 }
 
 std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::dict>& set, std::optional<int> max_depth,
@@ -207,20 +303,73 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
   return s;
 }
 
+// Passes running now, so that interpreter exit can stop them first (stop_passes_at_exit).
+struct RunningPasses {
+  std::mutex m;
+  std::condition_variable changed;
+  std::vector<std::atomic<bool>*> cancels;
+  bool exiting = false;
+};
+RunningPasses& running_passes() {
+  static auto* r = new RunningPasses;  // never destroyed: daemon threads may still use it at exit
+  return *r;
+}
+
+bool python_finalizing() {
+#if PY_VERSION_HEX >= 0x030D0000
+  return Py_IsFinalizing() != 0;
+#else
+  return _Py_IsFinalizing() != 0;
+#endif
+}
+
+// Registered with Python's atexit (which runs before the interpreter starts to finalize): cancels
+// the passes still running in other threads (a daemon thread's render) and waits, without the
+// GIL, until they have stopped after their current tiles, so that none runs on while the process
+// tears down; later passes refuse to start.
+void stop_passes_at_exit() {
+  RunningPasses& r = running_passes();
+  py::gil_scoped_release release;
+  std::unique_lock<std::mutex> lock(r.m);
+  r.exiting = true;
+  for (std::atomic<bool>* c : r.cancels) *c = true;
+  r.changed.wait_for(lock, std::chrono::seconds(30), [&] { return r.cancels.empty(); });
+}
+
 // Runs `pass(cancel)` (a render or gradient pass, `cancel` for its PassOptions) on a worker thread
 // while this one, without the GIL, looks for signals every 50 ms: Ctrl-C raises
 // KeyboardInterrupt once the pass has stopped after its current tiles. (Python handles signals
 // between bytecodes of its main thread: a pass run on this thread kept Ctrl-C waiting to its end.)
+// The GIL is released and taken back by hand, not by pybind11's scoped guards: once the
+// interpreter finalizes (a daemon thread's pass at exit), taking the GIL ends the calling thread
+// by pthread_exit, and in a guard's destructor that unwinding aborted the process
+// (std::terminate). Whatever leaves this frame, the worker is stopped and joined first.
 template <class Pass>
 void interruptible(Pass&& pass) {
   std::atomic<bool> cancel{false};
+  RunningPasses& passes = running_passes();
+  {
+    const std::lock_guard<std::mutex> lock(passes.m);
+    if (passes.exiting) throw InputError("the interpreter is exiting: no new pass starts");
+    passes.cancels.push_back(&cancel);
+  }
+  struct Unregister {
+    RunningPasses& passes;
+    std::atomic<bool>* cancel;
+    ~Unregister() {
+      const std::lock_guard<std::mutex> lock(passes.m);
+      passes.cancels.erase(std::find(passes.cancels.begin(), passes.cancels.end(), cancel));
+      passes.changed.notify_all();
+    }
+  } unregister{passes, &cancel};
   std::exception_ptr failure;
   std::mutex m;
   std::condition_variable finished;
   bool done = false, interrupted = false;
-  {
-    py::gil_scoped_release release;
-    std::thread worker([&] {
+  PyThreadState* state = PyEval_SaveThread();
+  std::thread worker;
+  try {
+    worker = std::thread([&] {
       try {
         pass(&cancel);
       } catch (...) {
@@ -230,22 +379,40 @@ void interruptible(Pass&& pass) {
       done = true;
       finished.notify_one();
     });
-    std::unique_lock<std::mutex> lock(m);
-    while (!finished.wait_for(lock, std::chrono::milliseconds(50), [&] { return done; })) {
-      if (interrupted) continue;
-      lock.unlock();
-      {
-        py::gil_scoped_acquire gil;
-        if (PyErr_CheckSignals() != 0) interrupted = true;  // the exception stays set for below
-      }
-      if (interrupted) cancel = true;
-      lock.lock();
+  } catch (...) {
+    PyEval_RestoreThread(state);
+    throw;
+  }
+  struct Join {
+    std::thread& worker;
+    std::atomic<bool>& cancel;
+    ~Join() {
+      if (!worker.joinable()) return;
+      cancel = true;
+      worker.join();
+    }
+  } join{worker, cancel};
+  std::unique_lock<std::mutex> lock(m);
+  while (!finished.wait_for(lock, std::chrono::milliseconds(50), [&] { return done; })) {
+    if (interrupted || cancel) continue;
+    if (python_finalizing()) {
+      cancel = true;
+      continue;
     }
     lock.unlock();
-    worker.join();
+    PyEval_RestoreThread(state);
+    if (PyErr_CheckSignals() != 0) interrupted = true;  // the exception stays set for below
+    state = PyEval_SaveThread();
+    if (interrupted) cancel = true;
+    lock.lock();
   }
+  lock.unlock();
+  worker.join();
+  PyEval_RestoreThread(state);
   if (interrupted) throw py::error_already_set();
   if (failure) std::rethrow_exception(failure);
+  // Stopped by stop_passes_at_exit (or by finalization): the result is partial.
+  if (cancel) throw InputError("the pass was stopped: the interpreter is exiting");
 }
 
 py::array_t<float> render_py(PyScene& s, const PassArgs& a) {
@@ -324,6 +491,7 @@ py::tuple grad_py(PyScene& s, const py::handle& target, const std::string& loss,
 
 PYBIND11_MODULE(_backlight, m) {
   m.doc() = "backlight: differentiable rendering with path replay backpropagation (see README)";
+  py::module_::import("atexit").attr("register")(py::cpp_function(&stop_passes_at_exit));
   static py::exception<InputError> error(m, "Error", PyExc_ValueError);
   py::register_exception_translator([](std::exception_ptr p) {
     try {
@@ -387,27 +555,26 @@ PYBIND11_MODULE(_backlight, m) {
                std::to_string(s.scene->cameras.size()) + " camera(s)>";
       });
 
-  m.def("load", &load, py::arg("path"), py::arg("set") = py::none(), py::kw_only(), py::arg("max_depth") = py::none(),
-        py::arg("rr_depth") = py::none(),
+  m.def("load", &load_py, py::arg("path"), py::arg("set") = py::none(), py::kw_only(),
+        py::arg("max_depth") = py::none(), py::arg("rr_depth") = py::none(),
         "Loads a JSON, glTF or Mitsuba 3 XML scene. set: {name: value} overrides, as the CLI's --set (a number, a list "
         "of numbers, "
         "or an image file name); max_depth and rr_depth as the CLI's --max-depth and --rr-depth.");
   m.def(
       "render",
-      [](PyScene& s, std::optional<int> spp, std::optional<uint64_t> seed, int camera,
-         std::optional<std::pair<int, int>> resolution) {
-        return render_py(s, {spp, seed, camera, resolution});
-      },
+      [](PyScene& s, const py::object& spp, const py::object& seed, const py::object& camera,
+         const py::object& resolution) { return render_py(s, pass_args(spp, seed, camera, resolution)); },
       py::arg("scene"), py::kw_only(), py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("camera") = 0,
       py::arg("resolution") = py::none(),
       "Renders an image: float32 (height, width, 3). resolution = (width, height) overrides the camera's film for "
       "this call.");
   m.def(
       "backward",
-      [](PyScene& s, const py::handle& d_image, const std::string& method, std::optional<int> spp,
-         std::optional<uint64_t> seed, std::optional<uint64_t> adjoint_seed, int camera,
-         std::optional<std::pair<int, int>> resolution, std::optional<std::vector<std::string>> params) {
-        return backward_py(s, d_image, method, {spp, seed, camera, resolution}, adjoint_seed, params);
+      [](PyScene& s, const py::handle& d_image, const py::object& method, const py::object& spp, const py::object& seed,
+         const py::object& adjoint_seed, const py::object& camera, const py::object& resolution,
+         const py::object& params) {
+        return backward_py(s, d_image, str_arg(method, "method"), pass_args(spp, seed, camera, resolution),
+                           seed_arg(adjoint_seed, "adjoint_seed"), names_arg(params, s.scene->params));
       },
       py::arg("scene"), py::arg("d_image"), py::kw_only(), py::arg("method") = "prb", py::arg("spp") = py::none(),
       py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(), py::arg("camera") = 0,
@@ -419,10 +586,12 @@ PYBIND11_MODULE(_backlight, m) {
       "(sampling is detached).");
   m.def(
       "grad",
-      [](PyScene& s, const py::handle& target, const std::string& loss, const std::string& method,
-         std::optional<int> spp, std::optional<uint64_t> seed, std::optional<uint64_t> adjoint_seed, int camera,
-         std::optional<std::pair<int, int>> resolution, std::optional<std::vector<std::string>> params) {
-        return grad_py(s, target, loss, method, {spp, seed, camera, resolution}, adjoint_seed, params);
+      [](PyScene& s, const py::handle& target, const py::object& loss, const py::object& method, const py::object& spp,
+         const py::object& seed, const py::object& adjoint_seed, const py::object& camera, const py::object& resolution,
+         const py::object& params) {
+        return grad_py(s, target, str_arg(loss, "loss"), str_arg(method, "method"),
+                       pass_args(spp, seed, camera, resolution), seed_arg(adjoint_seed, "adjoint_seed"),
+                       names_arg(params, s.scene->params));
       },
       py::arg("scene"), py::arg("target"), py::kw_only(), py::arg("loss") = "l2", py::arg("method") = "prb",
       py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(),

@@ -16,6 +16,8 @@ in the image, as Mitsuba 3 recommends for optimization). The scene's other param
 their values from forward to backward (backward checks their checksums and raises if one
 changed); double backward raises.
 """
+import threading
+import weakref
 import zlib
 
 import numpy as np
@@ -24,6 +26,20 @@ import torch
 from . import _backlight
 
 _METHODS = ("prb", "rb", "taped")
+
+# One lock per scene, held from writing a call's tensors into the scene to the end of its pass:
+# the module takes turns per pass, but two threads' writes could otherwise land between the other's
+# write and render (an image rendered with the other thread's values).
+_locks = weakref.WeakKeyDictionary()
+_locks_guard = threading.Lock()
+
+
+def _lock(scene):
+    with _locks_guard:
+        lock = _locks.get(scene)
+        if lock is None:
+            lock = _locks[scene] = threading.RLock()
+        return lock
 
 
 def _check(scene, names, tensors):
@@ -38,10 +54,14 @@ def _check(scene, names, tensors):
             raise _backlight.Error(f"{name}: expected a torch.Tensor, got {type(tensor).__name__}")
         if not tensor.is_floating_point():
             raise _backlight.Error(f"{name}: expected a floating-point tensor, got {tensor.dtype}")
-        value = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
+        detached = tensor.detach()
+        value = detached.to("cpu", torch.float32).contiguous().numpy()
         if value.shape != views[name].shape:
             raise _backlight.Error(f"{name}: expected shape {tuple(views[name].shape)}, got {tuple(value.shape)}")
         if not np.all(np.isfinite(value)):
+            if bool(torch.isfinite(detached).all()):
+                raise _backlight.Error(f"{name}: values beyond the float32 range (largest magnitude "
+                                       f"{float(detached.abs().max()):g})")
             raise _backlight.Error(f"{name}: the tensor holds NaN or infinite values")
         lower, upper = info[name]["lower"], info[name]["upper"]
         if value.size and (value.min() < lower or value.max() > upper):
@@ -51,10 +71,24 @@ def _check(scene, names, tensors):
     return values
 
 
-def _write(scene, names, tensors):
+def _write(scene, names, values):
     views = scene.params
-    for name, value in zip(names, _check(scene, names, tensors)):
+    for name, value in zip(names, values):
         views[name][...] = value
+
+
+def _run(scene, names, values, run):
+    """Writes values into the scene and calls run(); if run raises, the written parameters get their
+    old values back (a render refused for its camera left the scene changed, and a refused
+    geometry broke every later render)."""
+    views = scene.params
+    old = [views[name].copy() for name in names]
+    _write(scene, names, values)
+    try:
+        return run()
+    except BaseException:
+        _write(scene, names, old)
+        raise
 
 
 def _fingerprints(scene, skip):
@@ -65,11 +99,19 @@ def _fingerprints(scene, skip):
 class _Render(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scene, names, options, *tensors):
-        _write(scene, names, tensors)
-        image = _backlight.render(scene, spp=options["spp"], seed=options["seed"], camera=options["camera"],
-                                  resolution=options["resolution"])
+        values = _check(scene, names, tensors)
+        with _lock(scene):
+            image = _run(scene, names, values,
+                         lambda: _backlight.render(scene, spp=options["spp"], seed=options["seed"],
+                                                   camera=options["camera"], resolution=options["resolution"]))
+            ctx.others = _fingerprints(scene, set(names))
+            # A tensor sharing memory with the scene's parameter (torch.from_numpy(scene.params[n]))
+            # changes with every later write into the scene, which torch's in-place check does not
+            # see: backward uses a copy of the values this render used.
+            views = scene.params
+            ctx.copies = {i: v.copy() for i, (n, v) in enumerate(zip(names, values))
+                          if np.may_share_memory(v, views[n])}
         ctx.scene, ctx.names, ctx.options = scene, names, options
-        ctx.others = _fingerprints(scene, set(names))
         ctx.save_for_backward(*tensors)
         reference = tensors[0] if tensors else None
         out = torch.from_numpy(image)
@@ -79,21 +121,38 @@ class _Render(torch.autograd.Function):
     @torch.autograd.function.once_differentiable  # double backward raises instead of dropping terms
     def backward(ctx, grad_output):
         tensors = ctx.saved_tensors
-        _write(ctx.scene, ctx.names, tensors)
-        # Parameters this render did not take as tensors are read from the scene as they are now:
-        # if one changed since forward (another render's tensors, a write through a view), the
-        # gradient would be taken at values the image was not rendered with.
-        now = _fingerprints(ctx.scene, set(ctx.names))
-        changed = [name for name, value in ctx.others.items() if now.get(name) != value]
-        if changed:
-            raise _backlight.Error(
-                f"parameter '{changed[0]}' changed between this render's forward and backward (it is not one of its "
-                f"tensors {list(ctx.names)}): pass it as a tensor to every render, or render again after changing it")
-        o = ctx.options
+        values = _check(ctx.scene, ctx.names, tensors)
+        values = [ctx.copies.get(i, v) for i, v in enumerate(values)]
+        wanted = [n for i, n in enumerate(ctx.names) if ctx.needs_input_grad[3 + i]]
+        if not wanted:
+            return (None, None, None, *[None] * len(tensors))
         d_image = grad_output.detach().to("cpu", torch.float32).contiguous().numpy()
-        grads = _backlight.backward(ctx.scene, d_image, method=o["method"], spp=o["spp"], seed=o["seed"],
-                                    adjoint_seed=o["adjoint_seed"], camera=o["camera"],
-                                    resolution=o["resolution"], params=list(ctx.names))
+        if not np.all(np.isfinite(d_image)):
+            row, column, channel = np.argwhere(~np.isfinite(d_image))[0]
+            raise _backlight.Error(
+                f"the loss's gradient with respect to the image is NaN or infinite at pixel (row {row}, column "
+                f"{column}, channel {channel}): check the loss there (e.g. sqrt or log of a black pixel)")
+        o = ctx.options
+
+        def backward_pass():
+            # Parameters this render did not take as tensors are read from the scene as they are
+            # now: if one changed since forward (another render's tensors, a write through a view),
+            # the gradient would be taken at values the image was not rendered with.
+            now = _fingerprints(ctx.scene, set(ctx.names))
+            changed = [name for name, value in ctx.others.items() if now.get(name) != value]
+            if changed:
+                raise _backlight.Error(
+                    f"parameter '{changed[0]}' changed between this render's forward and backward (it is not one of "
+                    f"its tensors {list(ctx.names)}): pass it as a tensor to every render, or render again after "
+                    f"changing it")
+            # Only the tensors that want a gradient are differentiated: a fixed camera pose passed
+            # as a tensor would otherwise ask for geometry gradients.
+            return _backlight.backward(ctx.scene, d_image, method=o["method"], spp=o["spp"], seed=o["seed"],
+                                       adjoint_seed=o["adjoint_seed"], camera=o["camera"],
+                                       resolution=o["resolution"], params=wanted)
+
+        with _lock(ctx.scene):
+            grads = _run(ctx.scene, ctx.names, values, backward_pass)
         out = [torch.from_numpy(grads[n]).to(t.device, t.dtype) if ctx.needs_input_grad[3 + i] else None
                for i, (n, t) in enumerate(zip(ctx.names, tensors))]
         return (None, None, None, *out)
@@ -109,6 +168,9 @@ def render(scene, params, *, spp=None, seed=None, camera=0, resolution=None, met
     if method not in _METHODS:
         raise _backlight.Error(f"unknown method '{method}' (prb, rb or taped)")
     names = list(params)
+    if adjoint_seed is not None and (isinstance(adjoint_seed, bool) or not isinstance(adjoint_seed, int) or
+                                     not 0 <= adjoint_seed < 2**64):
+        raise _backlight.Error(f"adjoint_seed: expected an integer in 0..2^64 - 1, got {adjoint_seed!r}")
     options = {"spp": spp, "seed": seed, "camera": camera, "resolution": resolution, "method": method,
                "adjoint_seed": adjoint_seed}
     return _Render.apply(scene, names, options, *[params[n] for n in names])

@@ -137,7 +137,22 @@ def test_renders_release_the_gil(scene):
     (lambda s: backlight.load(CORNELL, set={"nope.albedo": 1}), "unknown parameter 'nope.albedo'"),
     (lambda s: backlight.load(CORNELL, set={"light.radiance": [1, 2]}), "light.radiance"),
     (lambda s: backlight.load(CORNELL, max_depth=0), "max_depth"),
-    (lambda s: backlight.render(s, spp=0), "spp must be"),
+    (lambda s: backlight.render(s, spp=0), "spp: 0 is out of range (1..1048576)"),
+    # Wrong types and ranges of keyword arguments raised pybind11's TypeError ("incompatible
+    # function arguments"), naming neither the argument nor the problem.
+    (lambda s: backlight.render(s, spp=2.5), "spp: expected an integer, got float 2.5"),
+    (lambda s: backlight.render(s, seed=-1), "seed: -1 is out of range"),
+    (lambda s: backlight.render(s, resolution=(16, 16, 1)), "resolution: expected (width, height), got (16, 16, 1)"),
+    (lambda s: backlight.render(s, resolution=(16, "a")), "resolution: height: expected an integer"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, params="white.albedo"),
+     "params: expected a list of parameter names, got the str 'white.albedo'"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, adjoint_seed=-3),
+     "adjoint_seed: -3 is out of range"),
+    (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, method=3),
+     "method: expected a str, got int 3"),
+    (lambda s: backlight.load(CORNELL, set=[1]), "set: expected a dict {name: value}, got list [1]"),
+    (lambda s: backlight.load(CORNELL, max_depth="3"), "max_depth: expected an integer, got str '3'"),
+    (lambda s: backlight.load(3), "path: expected a file name (str, bytes or os.PathLike), got int"),
     (lambda s: backlight.render(s, camera=99), "camera 99"),
     (lambda s: backlight.render(s, resolution=(0, 10)), "resolution"),
     (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, method="magic"),
@@ -148,7 +163,7 @@ def test_renders_release_the_gil(scene):
     (lambda s: backlight.backward(s, np.full((20, 24, 3), np.nan, np.float32), resolution=RES), "NaN"),
     (lambda s: backlight.backward(s, [[0.0]], resolution=RES), "expected a NumPy array"),
     (lambda s: backlight.backward(s, np.zeros((20, 24, 3), np.float32), resolution=RES, params=["nope"]),
-     "unknown parameter 'nope'"),
+     "params: unknown parameter 'nope' (see scene.params)"),
     (lambda s: backlight.grad(s, np.zeros((20, 24, 3), np.float32), resolution=RES, loss="l7"), "l7"),
     (lambda s: backlight.load(CORNELL, set={"light.radiance": []}), "got 0 values"),
     (lambda s: backlight.load(CORNELL, set={"light.radiance": ""}), "an empty file name"),
@@ -167,6 +182,13 @@ def test_bad_arguments_raise_one_line_errors(scene, call, message):
     text = str(info.value)
     assert message in text and "\n" not in text
     assert isinstance(info.value, ValueError)
+
+
+def test_paths_may_be_path_objects():
+    import pathlib
+    scene = backlight.load(pathlib.Path(CORNELL))
+    assert scene.path == CORNELL
+    assert backlight.render(scene, spp=1, resolution=(4, 4), seed=2**64 - 1).shape == (4, 4, 3)
 
 
 def test_bad_values_written_through_views_are_refused_by_name(scene):

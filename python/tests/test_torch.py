@@ -133,6 +133,107 @@ def test_double_backward_raises():
         (g.sum() + t.sum()).backward()
 
 
+def test_a_failed_pass_restores_the_values_it_wrote():
+    # The tensors were written before the pass, which can still refuse (a camera the scene lacks, a
+    # degenerate pose): the scene kept them, and a degenerate pose broke every later render.
+    scene = backlight.load(os.path.join(ROOT, "scenes", "pose", "scene.json"))
+    radiance = scene.params["light.radiance"].copy()
+    positions = scene.params["box.positions"].copy()
+    with pytest.raises(backlight.Error, match="camera 7"):
+        backlight.torch.render(scene, {"light.radiance": torch.tensor(radiance * 2)}, camera=7, resolution=(8, 8))
+    np.testing.assert_array_equal(scene.params["light.radiance"], radiance)
+    with pytest.raises(backlight.Error, match="degenerate"):
+        backlight.torch.render(scene, {"box.positions": torch.zeros(positions.shape)}, spp=1, resolution=(8, 8))
+    np.testing.assert_array_equal(scene.params["box.positions"], positions)
+    backlight.render(scene, spp=1, resolution=(8, 8))
+
+
+def test_tensors_without_grad_are_not_differentiated():
+    # A fixed camera pose passed as a tensor asked for geometry gradients, which the Cornell box's
+    # conductor cannot give: backward failed although only the albedo wanted a gradient.
+    scene = backlight.load(CORNELL)
+    origin = torch.tensor(scene.params["main.origin"])
+    albedo = torch.tensor(scene.params["white.albedo"], requires_grad=True)
+    image = backlight.torch.render(scene, {"main.origin": origin, "white.albedo": albedo}, spp=1, seed=2,
+                                   resolution=(16, 16))
+    image.sum().backward()
+    expected = backlight.backward(scene, np.ones((16, 16, 3), np.float32), spp=1, seed=2, resolution=(16, 16),
+                                  params=["white.albedo"])["white.albedo"]
+    np.testing.assert_allclose(albedo.grad.numpy(), expected, rtol=1e-6)
+
+
+def test_a_tensor_sharing_the_scenes_memory_keeps_its_forwards_values():
+    # torch.from_numpy(scene.params[name]) is the scene's memory: a later render overwrote it, and
+    # backward took the gradient at the later values.
+    scene = backlight.load(CORNELL)
+    theta = scene.params["white.albedo"].copy()
+    shared = torch.from_numpy(scene.params["white.albedo"]).requires_grad_()
+    a = weights(16, 16, seed=6)
+    image = backlight.torch.render(scene, {"white.albedo": shared}, spp=2, seed=1, resolution=(16, 16))
+    backlight.torch.render(scene, {"white.albedo": torch.tensor([0.1, 0.1, 0.1])}, spp=2, seed=1, resolution=(16, 16))
+    (image * torch.from_numpy(a)).sum().backward()
+    scene.params["white.albedo"][...] = theta
+    expected = backlight.backward(scene, a, spp=2, seed=1, resolution=(16, 16), params=["white.albedo"])
+    np.testing.assert_allclose(shared.grad.numpy(), expected["white.albedo"], rtol=1e-6)
+
+
+def test_renders_from_two_threads_use_their_own_values():
+    # Two threads' tensors were written between the other's write and render: most images were
+    # rendered with the other thread's values.
+    import threading
+    scene = backlight.load(CORNELL)
+    values = {0: np.array([4.0, 4.0, 4.0], np.float32), 1: np.array([30.0, 10.0, 2.0], np.float32)}
+    reference = {}
+    for k, v in values.items():
+        scene.params["light.radiance"][...] = v
+        reference[k] = backlight.render(scene, spp=1, seed=1, resolution=(16, 16))
+    wrong = []
+
+    def work(k):
+        for _ in range(8):
+            image = backlight.torch.render(scene, {"light.radiance": torch.tensor(values[k])}, spp=1, seed=1,
+                                           resolution=(16, 16))
+            if not np.array_equal(image.numpy(), reference[k]):
+                wrong.append(k)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in values]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not wrong
+
+
+def test_clear_errors_for_the_loss_gradient_and_float32_range():
+    scene = backlight.load(CORNELL)
+    t = torch.tensor(scene.params["white.albedo"], requires_grad=True)
+    image = backlight.torch.render(scene, {"white.albedo": t}, spp=1, resolution=(8, 8))
+    bad = torch.ones_like(image)
+    bad[2, 5, 1] = float("nan")
+    with pytest.raises(backlight.Error, match=r"NaN or infinite at pixel \(row 2, column 5, channel 1\)"):
+        (image * bad).sum().backward()
+    with pytest.raises(backlight.Error, match="beyond the float32 range"):
+        backlight.torch.render(scene, {"light.radiance": torch.tensor([1e39, 1.0, 1.0], dtype=torch.float64)})
+    with pytest.raises(backlight.Error, match="adjoint_seed"):
+        backlight.torch.render(scene, {"white.albedo": t}, adjoint_seed=-1)
+
+
+def test_exit_while_a_daemon_thread_renders():
+    # At interpreter exit a daemon thread taking the GIL back is ended by pthread_exit; inside
+    # pybind11's GIL guard (a destructor) that unwinding aborted the process ("terminate called
+    # without an active exception", exit 134; torch's slow shutdown made it nearly certain). The
+    # pass is now stopped at exit and the thread ends with an error.
+    script = ("import torch, backlight, threading, time, sys\n"
+              f"s = backlight.load({CORNELL!r})\n"
+              "threading.Thread(target=lambda: backlight.render(s, spp=64, resolution=(256, 256)), daemon=True).start()\n"
+              "time.sleep(0.5)\n"
+              "sys.exit(0)\n")
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert "terminate called" not in r.stderr
+
+
 @pytest.mark.parametrize("example", ["torch_texture.py", "torch_masked_loss.py"])
 def test_examples_run(example, tmp_path):
     script = os.path.join(ROOT, "python", "examples", example)
