@@ -4,7 +4,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <sstream>
+#include <unordered_map>
 
 #include "engine/core/limits.h"
 
@@ -138,6 +140,53 @@ std::vector<std::string> Scene::camera_medium_warnings() const {
                     " (set the camera's \"medium\", or check the shape's interior/exterior and its normals)");
       break;
     }
+  }
+  return out;
+}
+
+std::vector<std::string> Scene::open_medium_warnings() const {
+  std::vector<std::string> out;
+  for (size_t m = 0; m < media.size(); ++m) {
+    // Vertices welded by bitwise position (a uv seam or a hard edge splits a vertex, not the
+    // surface), then each undirected edge counted over every triangle of every such shape.
+    uint32_t vertices = 0;
+    std::unordered_map<uint64_t, uint32_t> edges;
+    std::vector<std::string> shapes;
+    auto key = [](const Vec3f& p) {
+      uint32_t b[3];
+      std::memcpy(b, &p, sizeof b);
+      return uint64_t(b[0]) * 0x9E3779B97F4A7C15ull ^ uint64_t(b[1]) * 0xC2B2AE3D27D4EB4Full ^
+             (uint64_t(b[2]) << 21 | uint64_t(b[2]) >> 43);
+    };
+    std::unordered_map<uint64_t, std::vector<std::pair<Vec3f, uint32_t>>> buckets;
+    auto id_of = [&](const Vec3f& p) {
+      auto& bucket = buckets[key(p)];
+      for (const auto& [q, id] : bucket)
+        if (std::memcmp(&q, &p, sizeof p) == 0) return id;
+      bucket.push_back({p, vertices});
+      return vertices++;
+    };
+    for (const Mesh& mesh : meshes) {
+      if (mesh.interior != int(m)) continue;
+      shapes.push_back("'" + mesh.name + "'");
+      for (size_t t = 0; t < mesh.triangle_count(); ++t) {
+        uint32_t v[3];
+        for (int k = 0; k < 3; ++k) v[k] = id_of(mesh.positions[mesh.indices[3 * t + size_t(k)]]);
+        for (int k = 0; k < 3; ++k) {
+          const uint32_t a = std::min(v[k], v[(k + 1) % 3]), b = std::max(v[k], v[(k + 1) % 3]);
+          if (a != b) ++edges[uint64_t(a) << 32 | b];
+        }
+      }
+    }
+    size_t open = 0;
+    for (const auto& [edge, count] : edges) open += count == 1;
+    if (open == 0) continue;
+    std::string names;
+    for (size_t i = 0; i < shapes.size(); ++i) names += (i ? ", " : "") + shapes[i];
+    out.push_back("backlight: " + source + ": warning: the inside of medium '" + media[m].name + "' (shape" +
+                  (shapes.size() > 1 ? "s " : " ") + names + ") is not closed: " + std::to_string(open) + " of " +
+                  std::to_string(edges.size()) +
+                  " edges belong to one triangle only, and a ray leaving through that gap stays in the medium");
   }
   return out;
 }

@@ -153,6 +153,11 @@ struct Scene {
   // its boundary fogs the whole view; one inside a boundary without "medium" sees no fog near it).
   // One warning line per such camera, for the loaders to print; needs prepare().
   std::vector<std::string> camera_medium_warnings() const;
+  // Media whose inside is not closed: the shapes naming medium m as their interior, welded by
+  // vertex position, have edges that only one triangle uses. A ray inside can leave through such a
+  // gap without crossing a boundary and then carries the medium on to infinity (as in Mitsuba 3).
+  // One warning line per such medium.
+  std::vector<std::string> open_medium_warnings() const;
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }

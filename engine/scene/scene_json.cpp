@@ -519,6 +519,7 @@ std::unique_ptr<Scene> build_json_scene(const json& root, const std::string& pat
   scene->add_geometry_params();
   scene->prepare();
   for (std::string& w : scene->camera_medium_warnings()) loader.warnings.push_back(std::move(w));
+  for (std::string& w : scene->open_medium_warnings()) loader.warnings.push_back(std::move(w));
   // A scene that fails to load gets its one error line only; one that loads, its warnings.
   for (const std::string& w : loader.warnings) std::fprintf(stderr, "%s\n", w.c_str());
   return scene;

@@ -875,6 +875,42 @@ TEST_CASE("a log parametrization steps by factors, with and without large steps"
   CHECK(*std::max_element(high.begin(), high.end()) == 4.f);
 }
 
+// A medium's inside must be closed: a ray leaving through a gap in its boundary carries the medium on
+// to infinity. The fog's cube (24 vertices with split normals, welded to 8 by position: 12
+// triangles, 18 edges) is closed; one triangle less leaves 3 edges with one triangle each; the
+// same box as six separate rectangles (one shape per face) is closed again.
+TEST_CASE("a medium whose inside is not closed is warned about", "[media]") {
+  auto scene = fog_scene();
+  CHECK(scene->open_medium_warnings().empty());
+  Mesh* box = nullptr;
+  for (Mesh& m : scene->meshes)
+    if (m.name == "box") box = &m;
+  REQUIRE(box);
+  REQUIRE(box->triangle_count() == 12);
+  const std::vector<uint32_t> closed = box->indices;
+  box->indices.resize(box->indices.size() - 3);
+  auto warnings = scene->open_medium_warnings();
+  REQUIRE(warnings.size() == 1);
+  CHECK_THAT(warnings[0], Catch::Contains("warning: the inside of medium 'fog' (shape 'box') is not closed: 3 of 18 "
+                                          "edges belong to one triangle only"));
+  // Six shapes, two triangles each, together closed.
+  box->indices = closed;
+  const Mesh whole = *box;
+  scene->meshes.erase(scene->meshes.begin() + (box - scene->meshes.data()));
+  for (int face = 0; face < 6; ++face) {
+    Mesh part = whole;
+    part.name = "face" + std::to_string(face);
+    part.indices.assign(closed.begin() + 6 * face, closed.begin() + 6 * face + 6);
+    scene->meshes.push_back(part);
+  }
+  CHECK(scene->open_medium_warnings().empty());
+  scene->meshes.pop_back();
+  warnings = scene->open_medium_warnings();
+  REQUIRE(warnings.size() == 1);
+  CHECK_THAT(warnings[0],
+             Catch::Contains("(shapes 'face0', 'face1', 'face2', 'face3', 'face4') is not closed: 4 of 17"));
+}
+
 // A camera's declared medium against the geometry: declared in the fog while outside its box (the
 // whole view fogged), or inside the box while declared in no medium (no fog near it), is one
 // warning line; a consistent camera none.
