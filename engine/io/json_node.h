@@ -93,6 +93,11 @@ class Node {
     if (d != std::floor(d)) fail_at(key, "expected a whole number");
     return long(d);
   }
+  long integer_required(const std::string& key, long lo, long hi) {
+    double d = checked_number(at(key), key, double(lo), double(hi));
+    if (d != std::floor(d)) fail_at(key, "expected a whole number");
+    return long(d);
+  }
   bool boolean(const std::string& key, bool fallback) {
     const json* v = find(key);
     if (!v) return fallback;

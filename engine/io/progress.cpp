@@ -76,6 +76,14 @@ void Progress::set_ranks(int ranks) {
   ranks_ = ranks;
 }
 
+void Progress::set_done_before(uint64_t n) {
+  {
+    std::lock_guard<std::mutex> lock(print_mutex_);
+    done_before_ = n;
+  }
+  done_ += n;
+}
+
 void Progress::set_note(const std::string& note) {
   std::lock_guard<std::mutex> lock(print_mutex_);
   note_ = note;
@@ -85,7 +93,8 @@ void Progress::print(uint64_t done, bool final) {
   std::lock_guard<std::mutex> lock(print_mutex_);
   double t = elapsed();
   double fraction = total_ ? double(done) / double(total_) : 1.0;
-  double rate = t > 0 ? double(done) / t : 0.0;
+  const uint64_t here = done - std::min(done, done_before_);
+  double rate = t > 0 ? double(here) / t : 0.0;
   double eta = rate > 0 ? double(total_ - std::min(done, total_)) / rate : INFINITY;
   rate *= double(ranks_);
   const std::string all = ranks_ > 1 ? " (" + std::to_string(ranks_) + " ranks)" : "";

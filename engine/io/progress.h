@@ -21,6 +21,9 @@ class Progress {
   // A pass split over `ranks` MPI ranks: `total` is this rank's share, and the rate shown is
   // that of all ranks, estimated as ranks × this rank's (tiles are interleaved, so shares are even).
   void set_ranks(int ranks);
+  // Work done before this run (a resumed job's finished iterations): counted towards the
+  // fraction, not towards the rate (they took no time here).
+  void set_done_before(uint64_t n);
 
  private:
   void print(uint64_t done, bool final);
@@ -28,6 +31,7 @@ class Progress {
   uint64_t total_;
   bool enabled_, tty_, finished_ = false;
   std::atomic<uint64_t> done_{0};
+  uint64_t done_before_ = 0;
   std::chrono::steady_clock::time_point start_;
   std::atomic<int64_t> last_print_ns_{0};
   std::mutex print_mutex_;

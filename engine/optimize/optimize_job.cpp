@@ -52,7 +52,15 @@ namespace fs = std::filesystem;
 namespace {
 
 volatile std::sig_atomic_t interrupted = 0;
-void on_sigint(int) { interrupted = 1; }
+// The first Ctrl-C asks for a checkpoint after the current view; a second one ends the process
+// at once (outputs are written atomically, so nothing is left truncated: the last checkpoint
+// stays usable).
+void on_sigint(int) {
+  interrupted = 1;
+  std::signal(SIGINT, SIG_DFL);
+  static const char note[] = "\noptimize: stopping after the current view (Ctrl-C again to quit at once)\n";
+  [[maybe_unused]] const auto written = write(STDERR_FILENO, note, sizeof note - 1);
+}
 
 struct Stage {
   int until = 0;  // iterations [previous until, until) run at this resolution
@@ -72,7 +80,7 @@ struct OptimizedParam {
   json init;  // null: keep the scene's value
   std::optional<Param> ground_truth;
   double tv_weight = 0;  // total-variation regularizer (grids and images)
-  double l1_weight = 0;  // sparsity: weight × mean |θ| (grids and images)
+  double l1_weight = 0;  // sparsity: weight × mean |θ| (any parameter)
   // Iterate averaging (Polyak–Ruppert): with average_from = N ≥ 0 the result is the mean of the
   // values after iterations N+1, …, the last (restarted by a resolution change after N: the next
   // stage starts from the finished stage's average, resampled). It removes the jitter Monte Carlo
@@ -141,7 +149,10 @@ struct Config {
   int loss_downsample = 1;
 };
 
-std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir) {
+// `key`: where in `n` errors point (the assignment's name, or e.g. "init").
+std::string override_string(const std::string& name, const json& v, const Node& n, const fs::path& dir,
+                            const std::string& key = "") {
+  const std::string& at = key.empty() ? name : key;
   // Numbers as written (std::to_string kept 6 decimals: an init of 1.5e-7 became 0).
   auto number = [](double x) {
     char buf[32];
@@ -153,12 +164,12 @@ std::string override_string(const std::string& name, const json& v, const Node& 
   if (v.is_array()) {
     std::string s = name + "=";
     for (size_t i = 0; i < v.size(); ++i) {
-      if (!v[i].is_number()) n.fail_at(name, "expected numbers");
+      if (!v[i].is_number()) n.fail_at(at, "expected numbers");
       s += (i ? "," : "") + number(v[i].get<double>());
     }
     return s;
   }
-  n.fail_at(name, "expected a file name, a number or a list of numbers");
+  n.fail_at(at, "expected a file name, a number or a list of numbers");
 }
 
 // apply_override for an assignment the config at JSON pointer `pointer` makes: its errors name
@@ -190,16 +201,23 @@ Config parse_config(const std::string& path) {
   }
   if (n.string("output").empty()) n.fail_at("output", "an empty folder name");
   c.output = (dir / n.string("output")).lexically_normal().string();
-  c.iterations = int(n.number("iterations", 100, 1, 1e7));
-  c.seed = uint64_t(n.number("seed", 0, 0, 4294967295.0));
+  c.iterations = int(n.integer("iterations", 100, 1, 10000000));
+  c.seed = uint64_t(n.integer("seed", 0, 0, 4294967295));
   c.spp = int(n.integer("spp", 4, 1, long(limits::kSpp)));
   c.adjoint_spp = int(n.integer("adjoint_spp", c.spp, 1, long(limits::kSpp)));
   c.decorrelate = n.boolean("decorrelate", true);
   c.loss_downsample = int(n.integer("loss_downsample", 1, 1, 64));
-  c.loss = n.has("loss") ? parse_loss(n.string("loss")) : LossType::L2;
-  c.checkpoint_every = int(n.number("checkpoint_every", 10, 1, 1e7));
-  c.snapshot_every = int(n.number("snapshot_every", 25, 1, 1e7));
-  c.views_per_iteration = int(n.number("views_per_iteration", 0, 0, 1e4));
+  c.loss = LossType::L2;
+  if (n.has("loss")) {
+    try {
+      c.loss = parse_loss(n.string("loss"));
+    } catch (const InputError& e) {
+      n.fail_at("loss", e.what());
+    }
+  }
+  c.checkpoint_every = int(n.integer("checkpoint_every", 10, 1, 10000000));
+  c.snapshot_every = int(n.integer("snapshot_every", 25, 1, 10000000));
+  c.views_per_iteration = int(n.integer("views_per_iteration", 0, 0, 10000));
   auto read_size = [&](const char* key, int& w, int& h) {
     if (const json* r = n.find(key)) {
       if (!r->is_array() || r->size() != 2 || !(*r)[0].is_number_integer() || !(*r)[1].is_number_integer() ||
@@ -226,7 +244,7 @@ Config parse_config(const std::string& path) {
     for (size_t i = 0; i < st->size(); ++i) {
       Node s((*st)[i], "/image_schedule/" + std::to_string(i), c.file);
       Config::ImageStage stage;
-      stage.until = int(s.number_required("until", 0, 1e7));
+      stage.until = int(s.integer_required("until", 1, 10000000));
       stage.downsample = int(s.integer("downsample", 1, 1, 64));
       stage.views_per_iteration = int(s.integer("views_per_iteration", -1, 0, 10000));
       stage.loss_downsample = int(s.integer("loss_downsample", -1, 1, 64));
@@ -318,7 +336,9 @@ Config parse_config(const std::string& path) {
       a.decay = d.string("type");
       if (a.decay != "exponential" && a.decay != "step") d.fail_at("type", "expected \"exponential\" or \"step\"");
       a.decay_rate = d.number_required("rate", 0, 1);
-      a.decay_every = int(d.number("every", a.decay == "step" ? 50 : 0, a.decay == "step" ? 1 : 0, 1e7));
+      if (a.decay == "exponential" && d.has("every"))
+        d.fail_at("every", "only for \"step\" decay (exponential decay multiplies the rate in every iteration)");
+      a.decay_every = a.decay == "step" ? int(d.integer("every", 50, 1, 10000000)) : 0;
       d.finish();
     }
     if (p.has("moments")) {
@@ -332,7 +352,7 @@ Config parse_config(const std::string& path) {
       for (size_t i = 0; i < st->size(); ++i) {
         Node s((*st)[i], p.pointer("schedule") + "/" + std::to_string(i), c.file);
         Stage stage;
-        stage.until = int(s.number_required("until", 0, 1e7));
+        stage.until = int(s.integer_required("until", 1, 10000000));
         const json& r = s.at("resolution");
         bool ok = r.is_array() && (r.size() == 2 || r.size() == 3);
         for (size_t k = 0; ok && k < r.size(); ++k)
@@ -624,6 +644,9 @@ class Job {
           throw InputError(at + "only image and grid parameters can change resolution (this one has shape " +
                            scene_->params.shape_string(p.handle) + ")");
       }
+      if (p.tv_weight > 0 && !is_grid(param) && !param.is_image())  // it did nothing, silently
+        throw InputError(where + "/regularizer: \"tv\" is for image and grid parameters (this one has shape " +
+                         scene_->params.shape_string(p.handle) + ")");
       if (p.has_bounds) {  // they must meet the parameter's valid range (steps are clamped into both)
         const float lo = p.bounds[0], hi = p.bounds[1];
         if (hi < param.lower || lo > param.upper) {
@@ -945,25 +968,29 @@ class Job {
   }
   void apply_init(Scene& scene, const OptimizedParam& p) const {
     Node holder = Node::at_pointer("/parameters/" + p.name, c_.file);
-    apply_config_override(scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path()), c_.file,
-                          "/parameters/" + p.name + "/init");
+    apply_config_override(scene, override_string(p.name, p.init, holder, fs::path(c_.file).parent_path(), "init"),
+                          c_.file, "/parameters/" + p.name + "/init");
   }
 
   void apply_initial_values() {
     for (auto& p : c_.params) {
       Param& param = scene_->params[p.handle];
-      if (!p.init.is_null()) {
-        apply_init(*scene_, p);
-        // A start outside the bounds would be rendered (and differentiated) once, then clamped.
-        const float lo = p.bounds[0], hi = p.bounds[1];
-        for (size_t i = 0; p.has_bounds && i < param.value.size(); ++i)
-          if (param.value[i] < lo || param.value[i] > hi) {
-            std::ostringstream m;
-            m << c_.file << ": /parameters/" << p.name << "/init: element " << i << " = " << param.value[i]
-              << " is outside the bounds [" << lo << ", " << hi << "]";
-            throw InputError(m.str());
-          }
-      }
+      if (!p.init.is_null()) apply_init(*scene_, p);
+      // A start outside the bounds (an init's, or the scene's own value) would be rendered and
+      // differentiated once, then clamped.
+      const float lo = p.bounds[0], hi = p.bounds[1];
+      for (size_t i = 0; p.has_bounds && i < param.value.size(); ++i)
+        if (param.value[i] < lo || param.value[i] > hi) {
+          std::ostringstream m;
+          m << c_.file << ": /parameters/" << p.name;
+          if (!p.init.is_null())
+            m << "/init: element " << i << " = " << param.value[i] << " is outside the bounds [" << lo << ", " << hi
+              << "]";
+          else
+            m << "/bounds: the scene's value, element " << i << " = " << param.value[i] << ", is outside [" << lo
+              << ", " << hi << "] (give an \"init\" inside them)";
+          throw InputError(m.str());
+        }
       if (!p.stages.empty()) resize_param(param, p.stages[0]);
       p.adam.reset(param.size());
     }
@@ -992,7 +1019,7 @@ class Job {
   int optimize(int start) {
     std::signal(SIGINT, on_sigint);
     Progress progress("optimize", uint64_t(c_.iterations), "it", !quiet_);
-    progress.advance(uint64_t(start));
+    progress.set_done_before(uint64_t(start));
     auto t0 = std::chrono::steady_clock::now();
     auto seconds = [&] {
       return elapsed_before_ + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -1085,8 +1112,8 @@ class Job {
           std::vector<float> u = grid_apply_m(d, lambda, param.value);
           p.adam.step(u, grid_solve_m(d, lambda, param.grad));
           param.value = grid_solve_m(d, lambda, u, param.value);
-        } else {
-          p.adam.step(param.value, param.grad);
+        } else {  // plain Adam, also in a grid's stages without large steps (λ = 0)
+          p.adam.step(param.value, param.grad, false);
         }
         if (p.log_space)
           for (float& x : param.value) x = std::exp(x);
@@ -1459,9 +1486,29 @@ class Job {
       for (auto& p : c_.params) {
         const json& s = state.at("parameters").at(p.name);
         Param& param = scene_->params[p.handle];
-        param.shape = s.at("shape").get<std::vector<int>>();
-        size_t size = 1;
-        for (int d : param.shape) size *= size_t(d);
+        // The checkpoint's shape: the parameter's own, except the resolution of an image or a
+        // grid (a schedule resamples them). A negative dimension wrapped the size (an internal
+        // error), and a reshaped one (same count, other layout) resumed on scrambled values.
+        const std::vector<int64_t> shape = s.at("shape").get<std::vector<int64_t>>();
+        const bool resampled = param.is_image() || is_grid(param);
+        bool fits = shape.size() == param.shape.size() && !shape.empty();
+        for (size_t k = 0; fits && k < shape.size(); ++k)
+          fits = shape[k] >= 1 && uint64_t(shape[k]) <= limits::kImageSide &&
+                 (resampled ? k + 1 < shape.size() || shape[k] == param.shape[k] : shape[k] == param.shape[k]);
+        auto shape_text = [](const auto& v) {
+          std::string t = "[";
+          for (size_t k = 0; k < v.size(); ++k) t += (k ? ", " : "") + std::to_string(v[k]);
+          return t + "]";
+        };
+        if (!fits)
+          throw file_error(dir + "/state.json", "the checkpoint's shape " + shape_text(shape) + " of '" + p.name +
+                                                    "' does not fit the parameter (" + shape_text(param.shape) + ")");
+        uint64_t count = 1;
+        for (int64_t d : shape)
+          if (!limits::checked_mul(count, uint64_t(d), count)) count = UINT64_MAX;
+        limits::require_at_most(dir + "/state.json: " + p.name, "value count", count, limits::kParamValues);
+        const size_t size = size_t(count);
+        param.shape.assign(shape.begin(), shape.end());
         param.value = read_floats(dir + "/" + p.name + ".value", size);
         validate_param(param, dir + "/" + p.name + ".value");
         param.grad.assign(size, 0.f);

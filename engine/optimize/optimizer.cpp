@@ -41,7 +41,7 @@ uint32_t mix32(uint64_t x) {
 }
 }  // namespace
 
-void Adam::step(std::vector<float>& value, const std::vector<float>& gradient) {
+void Adam::step(std::vector<float>& value, const std::vector<float>& gradient, bool uniform_allowed) {
   if (state_size() != value.size()) reset(value.size());
   const double lr = current_learning_rate();
   ++t_;
@@ -70,7 +70,7 @@ void Adam::step(std::vector<float>& value, const std::vector<float>& gradient) {
     }
   };
   const size_t grain = size_t(1) << 14;
-  if (!s_.uniform) {
+  if (!s_.uniform || !uniform_allowed) {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, value.size(), grain), [&](const auto& range) {
       for (size_t i = range.begin(); i != range.end(); ++i) {
         double mi, vi;

@@ -51,8 +51,10 @@ class Adam {
  public:
   Adam() = default;
   explicit Adam(AdamSettings s) : s_(std::move(s)) {}
-  // One bias-corrected step of θ along −gradient, then projection onto [lower, upper].
-  void step(std::vector<float>& value, const std::vector<float>& gradient);
+  // One bias-corrected step of θ along −gradient, then projection onto [lower, upper]. With
+  // `uniform_allowed` false the step is per element even when the settings ask for uniform Adam
+  // (a grid's schedule stage without large steps: plain Adam, as documented).
+  void step(std::vector<float>& value, const std::vector<float>& gradient, bool uniform_allowed = true);
   // Resets moments (after a resolution change).
   void reset(size_t size);
   // The learning rate of the next step (decay and warm-up applied).

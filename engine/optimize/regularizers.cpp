@@ -39,7 +39,7 @@ double add_total_variation(Param& p, double weight) {
 }
 
 double add_l1(Param& p, double weight) {
-  if (weight <= 0 || (!p.is_image() && p.shape.size() != 4)) return 0;
+  if (weight <= 0 || p.value.empty()) return 0;
   const double per_element = weight / double(p.value.size());
   double sum = 0;
   for (size_t i = 0; i < p.value.size(); ++i) {

@@ -1,7 +1,8 @@
 #pragma once
 // Regularizers of the optimize job (`"regularizer"` in a parameter's entry): each adds weight ·
-// ∂R/∂θ to the parameter's gradient and returns weight · R, which the job adds to the loss. Only
-// images ([H, W, C]) and grids ([Z, Y, X, C]) are regularized; other parameters return 0.
+// ∂R/∂θ to the parameter's gradient and returns weight · R, which the job adds to the loss. Total
+// variation is for images ([H, W, C]) and grids ([Z, Y, X, C]) (the job refuses it on other
+// parameters; here they return 0); L1 is for any parameter.
 #include "engine/core/params.h"
 
 namespace bl {

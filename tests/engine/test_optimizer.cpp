@@ -467,9 +467,9 @@ TEST_CASE("regularizers: total variation and L1 gradients match finite differenc
       CHECK(flipped_agree < p.value.size() / 10);
     }
   }
-  // Scalars and other parameters are left alone.
+  // Total variation leaves scalars and other non-image parameters alone (the job refuses it on
+  // them); L1 applies to any parameter (see "the L1 regularizer applies to any parameter").
   Param scalar = make({1});
-  CHECK(add_l1(scalar, 1.0) == 0.0);
   CHECK(add_total_variation(scalar, 1.0) == 0.0);
   CHECK(scalar.grad[0] == 0.f);
 }
@@ -606,6 +606,87 @@ TEST_CASE("config errors are one clear line naming the config", "[optimizer][err
                "image-schedule downsample 2");
   expect_error(head + tail + R"("image_schedule": [{"until": 2, "loss_downsample": 0}]})",
                "/image_schedule/0/loss_downsample");
+  // Whole numbers were read as numbers and truncated (2.5 iterations ran 2); a stage ending at
+  // iteration 0 was accepted and never used.
+  expect_error(head + tail + R"("iterations": 2.5})", "bad.json: /iterations: expected a whole number");
+  expect_error(head + tail + R"("checkpoint_every": 2.7})", "bad.json: /checkpoint_every: expected a whole number");
+  expect_error(head + tail + R"("image_schedule": [{"until": 2.5}]})", "/image_schedule/0/until: expected a whole");
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "schedule": [{"until": 0, "resolution": [8, 8]}]}})"),
+               "/parameters/floor.albedo/schedule/0/until: value 0 outside the valid range");
+  // A bad loss named neither the config nor the key.
+  expect_error(head + tail + R"("loss": "l3"})", "bad.json: /loss: unknown loss 'l3'");
+  // An init of the wrong type pointed at /parameters/floor.albedo/floor.albedo.
+  expect_error(with_parameters(R"({"floor.albedo": {"lr": 0.1, "init": {"a": 1}}})"),
+               "bad.json: /parameters/floor.albedo/init: expected a file name, a number or a list of numbers");
+  // Exponential decay ignored "every".
+  expect_error(
+      with_parameters(R"({"floor.albedo": {"lr": 0.1, "decay": {"type": "exponential", "rate": 0.5, "every": 10}}})"),
+      "/parameters/floor.albedo/decay/every: only for \"step\" decay");
+  // Total variation of a parameter that is no image or grid did nothing, silently.
+  expect_error(with_parameters(R"({"environment.radiance": {"lr": 0.1, "regularizer": {"type": "tv", "weight": 1}}})"),
+               "bad.json: /parameters/environment.radiance/regularizer: \"tv\" is for image and grid parameters "
+               "(this one has shape [3])");
+  // The scene's own value outside the bounds was rendered and differentiated once, then clamped.
+  expect_error(with_parameters(R"({"environment.radiance": {"lr": 0.1, "bounds": [0.2, 0.8]}})"),
+               "bad.json: /parameters/environment.radiance/bounds: the scene's value, element 0 = 1, is outside [0.2, "
+               "0.8] (give an \"init\" inside them)");
+}
+
+TEST_CASE("a grid stage without large steps is plain Adam, uniform Adam only where large steps run", "[optimizer]") {
+  // A parameter's large_steps sets uniform Adam; a schedule stage with large_steps_lambda 0 is
+  // documented as plain Adam, but stepped with the uniform second moment (the largest element's),
+  // so only the largest-gradient element moved by lr.
+  AdamSettings uniform;
+  uniform.learning_rate = 0.1;
+  uniform.uniform = true;
+  AdamSettings plain = uniform;
+  plain.uniform = false;
+  const std::vector<float> gradient = {1.f, -0.01f, 0.2f, 0.f};
+  std::vector<float> a(4, 0.5f), b(4, 0.5f), c(4, 0.5f);
+  Adam ua(uniform), pa(plain), ub(uniform);
+  ua.step(a, gradient, false);
+  pa.step(b, gradient);
+  ub.step(c, gradient);
+  CHECK(a == b);
+  CHECK(a[1] == Approx(0.6f));                 // plain Adam's first step: ±lr for every element with a gradient
+  CHECK(c[1] == Approx(0.5f + 0.1f * 0.01f));  // uniform: scaled by the largest gradient
+}
+
+TEST_CASE("a checkpoint whose parameter shape does not fit the parameter is refused", "[optimizer][errors]") {
+  // A negative dimension wrapped the size ("internal error: cannot create std::vector larger than
+  // max_size()"); a reshaped texture of the same value count resumed on scrambled texels.
+  const std::string dir = test::temp_dir("opt-shape");
+  REQUIRE(run_optimize(write_tiny_job(dir, 2), "", 1, true) == 0);
+  const std::string state_path = dir + "/out/checkpoint/state.json";
+  const nlohmann::json state = read_json(state_path);
+  REQUIRE(state["parameters"]["floor.albedo"]["shape"] == nlohmann::json::array({64, 64, 3}));
+  for (const char* shape : {"[-64, -64, 3]", "[64, 64, 3, 1]", "[64, 64, 1]", "[12288]", "[0, 64, 3]"}) {
+    INFO(shape);
+    nlohmann::json bad = state;
+    bad["parameters"]["floor.albedo"]["shape"] = nlohmann::json::parse(shape);
+    std::ofstream(state_path) << bad.dump();
+    try {
+      run_optimize(write_tiny_job(dir, 4), dir + "/out", 1, true);
+      FAIL("resumed with shape " << shape);
+    } catch (const InputError& e) {
+      const std::string msg = e.what();
+      INFO(msg);
+      CHECK(msg.find("state.json") != std::string::npos);
+      CHECK(msg.find("does not fit the parameter ([64, 64, 3])") != std::string::npos);
+    }
+  }
+  std::ofstream(state_path) << state.dump();
+  CHECK(run_optimize(write_tiny_job(dir, 4), dir + "/out", 1, true) == 0);
+}
+
+TEST_CASE("the L1 regularizer applies to any parameter", "[optimizer]") {
+  // It returned 0 for anything but images and grids: an L1 prior on an RGB value did nothing.
+  Param p;
+  p.shape = {3};
+  p.value = {0.5f, -0.25f, 0.f};
+  p.grad.assign(3, 0.f);
+  CHECK(add_l1(p, 3.0) == Approx(0.75));
+  CHECK(p.grad == std::vector<float>{1.f, -1.f, 0.f});
 }
 
 TEST_CASE("an image schedule renders early iterations smaller, against block means of the targets", "[optimizer]") {
