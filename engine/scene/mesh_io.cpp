@@ -469,6 +469,32 @@ Mesh read_ply(const std::string& path) {
   return m;
 }
 
+std::vector<Vec3f> angle_weighted_normals(const std::vector<Vec3f>& positions, const std::vector<uint32_t>& indices) {
+  std::vector<Vec3d> sum(positions.size(), Vec3d(0.0));
+  // The angle between unit vectors, accurate near 0 and π (Mitsuba's unit_angle).
+  auto unit_angle = [](const Vec3d& a, const Vec3d& b) {
+    const double pi = 3.14159265358979323846;
+    return dot(a, b) < 0 ? pi - 2 * std::asin(length(a + b) / 2) : 2 * std::asin(length(a - b) / 2);
+  };
+  for (size_t t = 0; t + 2 < indices.size(); t += 3) {
+    const uint32_t i[3] = {indices[t], indices[t + 1], indices[t + 2]};
+    const Vec3d p[3] = {Vec3d(positions[i[0]]), Vec3d(positions[i[1]]), Vec3d(positions[i[2]])};
+    const Vec3d n = cross(p[1] - p[0], p[2] - p[0]);
+    if (!(dot(n, n) > 0)) continue;
+    const Vec3d unit = n / length(n);
+    for (int k = 0; k < 3; ++k) {
+      const Vec3d a = p[(k + 1) % 3] - p[k], b = p[(k + 2) % 3] - p[k];
+      sum[i[k]] += unit * unit_angle(a / length(a), b / length(b));
+    }
+  }
+  std::vector<Vec3f> normals(positions.size());
+  for (size_t v = 0; v < sum.size(); ++v) {
+    const double l = length(sum[v]);
+    normals[v] = l > 0 ? Vec3f(sum[v] / l) : Vec3f(1.f, 0.f, 0.f);
+  }
+  return normals;
+}
+
 Mesh make_sphere(int segments) {
   Mesh m;
   const int rings = segments / 2;

@@ -252,6 +252,30 @@ expect_error xml_warning_then_error "warn_then_fail.xml" "line 4" "unsupported s
   render warn_then_fail.xml -o o.exr -q
 printf '<scene version="3.0.0">\n%s\n<bsdf type="twosided" id="a"><ref id="b"/></bsdf>\n<bsdf type="twosided" id="b"><ref id="a"/></bsdf>\n</scene>\n' "$xml_sensor" >ref_cycle.xml
 expect_error xml_reference_cycle "ref_cycle.xml" "twosided bsdf inside a twosided bsdf" -- params ref_cycle.xml
+# A missing mesh names the XML file, line and element (it named only the mesh file); Mitsuba's
+# path integrator ignores media, so a medium under it is an error; a far_clip that clips the scene
+# is an error (backlight's camera rays are not clipped).
+printf '<scene version="3.0.0">\n%s\n<shape type="obj"><string name="filename" value="nope.obj"/></shape>\n</scene>\n' \
+  "$xml_sensor" >missing_mesh.xml
+expect_error xml_missing_mesh "missing_mesh.xml: line 3: <string name=\"filename\">: file 'nope.obj' not found" -- \
+  render missing_mesh.xml -o o.exr -q
+printf '<scene version="3.0.0">\n<integrator type="path"/>\n%s\n<shape type="cube"><bsdf type="null"/><medium type="homogeneous" name="interior"/></shape>\n</scene>\n' \
+  "$xml_sensor" >path_fog.xml
+expect_error xml_path_ignores_media "path_fog.xml: line 2: <integrator type=\"path\">" \
+  "integrator 'path' ignores media in Mitsuba 3: use volpath or prbvolpath" -- render path_fog.xml -o o.exr -q
+printf '<scene version="3.0.0">\n<sensor type="perspective"><float name="fov" value="40"/><float name="far_clip" value="2"/><transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0"/></transform></sensor>\n<shape type="cube"/>\n</scene>\n' \
+  >far_clip.xml
+expect_error xml_far_clip "far_clip.xml: line 2: <float name=\"far_clip\">: far_clip 2 clips shape" -- \
+  render far_clip.xml -o o.exr -q
+# Approximations keep one warning each: a plastic's diffuse lobe lacks Mitsuba's internal
+# scattering factor; a scene without an integrator is rendered as Mitsuba's path.
+printf '<scene version="3.0.0">\n%s\n<shape type="cube"><bsdf type="plastic"/></shape>\n</scene>\n' "$xml_sensor" >plastic.xml
+if expect_ok xml_plastic_warnings render plastic.xml -o plastic.exr -q; then
+  grep -qF "line 3: <bsdf type=\"plastic\">: Mitsuba scales a plastic's diffuse lobe by 1/(η²(1 − F_dr))" err.xml_plastic_warnings ||
+    fail "xml_plastic_warnings: no internal-scattering warning: $(cat err.xml_plastic_warnings)"
+  grep -qF 'no <integrator>: rendered as <integrator type="path"/>' err.xml_plastic_warnings ||
+    fail "xml_plastic_warnings: no missing-integrator warning: $(cat err.xml_plastic_warnings)"
+fi
 
 # glTF.
 head -c 1000 /dev/urandom >garbage.gltf
