@@ -1,5 +1,9 @@
 // glTF 2.0 (.gltf/.glb) loading through tinygltf: meshes with node transforms and vertex
-// colours, cameras, metallic-roughness materials and emissive materials as area lights.
+// colours, cameras, metallic-roughness materials and emissive materials as area lights. What
+// backlight cannot render as glTF specifies (morph targets in use, skins, alpha cut-outs and
+// blending, orthographic or mirrored cameras, nearest filtering) is refused by name; what it
+// skips or ignores (points and lines, meshes under nodes scaled to 0, normal and occlusion maps)
+// gets one warning per file.
 #include <tiny_gltf.h>
 
 #include <nlohmann/json.hpp>
@@ -17,6 +21,7 @@
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
 #include "engine/io/image_io.h"
+#include "engine/scene/gltf_json_checks.h"
 #include "engine/scene/mesh_io.h"
 #include "engine/scene/scene_load.h"
 
@@ -50,56 +55,6 @@ std::string gltf_json_text(const std::string& path, bool binary) {
   if (length > bytes.size() - 20)
     throw file_error(path, "invalid glTF: the JSON chunk extends past the end of the file");
   return bytes.substr(20, length);
-}
-
-// A file that requires an extension we do not implement (Draco or meshopt compression, ...) is
-// refused by name before tinygltf reads it: its buffers would otherwise fail with messages about
-// missing files or buffer views.
-void check_required_extensions(const std::string& path, const nlohmann::json& doc) {
-  static const std::set<std::string> implemented = {"KHR_mesh_quantization", "KHR_texture_transform",
-                                                    "KHR_materials_emissive_strength"};
-  const auto it = doc.find("extensionsRequired");
-  if (it == doc.end()) return;
-  if (!it->is_array()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
-  for (const auto& name : *it) {
-    if (!name.is_string()) throw file_error(path, "invalid glTF: extensionsRequired must be an array of names");
-    if (implemented.count(name.get<std::string>())) continue;
-    throw file_error(path, "requires the glTF extension '" + name.get<std::string>().substr(0, 100) +
-                               "', which backlight does not support");
-  }
-}
-
-// A perspective camera's aspectRatio is optional; tinygltf reads an absent one and an explicit 0
-// alike (as 0), so an explicit value that is not positive is caught in the JSON itself.
-void check_camera_aspect_ratios(const std::string& path, const nlohmann::json& doc) {
-  const auto cameras = doc.find("cameras");
-  if (cameras == doc.end() || !cameras->is_array()) return;  // tinygltf reports a malformed list
-  for (size_t i = 0; i < cameras->size(); ++i) {
-    const nlohmann::json& camera = (*cameras)[i];
-    if (!camera.is_object() || !camera.contains("perspective") || !camera["perspective"].is_object()) continue;
-    const nlohmann::json& perspective = camera["perspective"];
-    const auto aspect = perspective.find("aspectRatio");
-    if (aspect != perspective.end() && !(aspect->is_number() && aspect->get<double>() > 0))
-      throw file_error(path, "camera " + std::to_string(i) + ": aspectRatio must be a positive number");
-  }
-}
-
-// A node has a matrix or translation/rotation/scale, never both (the schema's rule). tinygltf
-// reads TRS only when there is no matrix, so a node with both is caught in the JSON itself: its
-// TRS would otherwise be dropped without a word.
-void check_node_transforms(const std::string& path, const nlohmann::json& doc) {
-  const auto nodes = doc.find("nodes");
-  if (nodes == doc.end() || !nodes->is_array()) return;  // tinygltf reports a malformed list
-  for (size_t i = 0; i < nodes->size(); ++i) {
-    const nlohmann::json& node = (*nodes)[i];
-    if (!node.is_object() || !node.contains("matrix")) continue;
-    if (!node.contains("translation") && !node.contains("rotation") && !node.contains("scale")) continue;
-    const auto name = node.find("name");
-    const std::string named =
-        name != node.end() && name->is_string() ? " ('" + name->get<std::string>().substr(0, 100) + "')" : "";
-    throw file_error(path, "node " + std::to_string(i) + named +
-                               ": has both a matrix and translation/rotation/scale (glTF allows one or the other)");
-  }
 }
 
 // File access for tinygltf (the glTF itself, external buffers and images): only regular files,
@@ -158,16 +113,39 @@ tinygltf::Model read_model(const std::string& path) {
   const std::string json_text = gltf_json_text(path, ext == ".glb");
   limits::check_json_depth(path, json_text);
   const nlohmann::json doc = nlohmann::json::parse(json_text, nullptr, false);
-  if (!doc.is_discarded() && doc.is_object()) {  // else tinygltf reports the syntax error
-    check_required_extensions(path, doc);
-    check_camera_aspect_ratios(path, doc);
-    check_node_transforms(path, doc);
-  }
+  // Else tinygltf reports the syntax error.
+  if (!doc.is_discarded() && doc.is_object()) gltf_json::check_gltf_json(path, doc);
   bool ok = ext == ".glb" ? loader.LoadBinaryFromFile(&model, &err, &warn, path)
                           : loader.LoadASCIIFromFile(&model, &err, &warn, path);
   if (!ok || !err.empty())
     throw file_error(path, "invalid glTF: " + (err.empty() ? std::string("cannot parse") : first_line(err)));
   return model;
+}
+
+// The determinant of a transform's linear part, in double: its sign tells whether it mirrors, and
+// it is 0 for a transform that scales to 0.
+double linear_determinant(const Transform& t) {
+  const auto m = [&](int r, int c) { return double(t.m[r][c]); };
+  return m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1)) - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0)) +
+         m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+}
+
+std::string number_text(double v) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%g", v);
+  return b;
+}
+
+// Channel `c` of pixel `i` of a decoded glTF image, in [0, 1]. tinygltf decodes 8-bit images to
+// bytes and 16-bit PNGs to two bytes per channel, in the machine's byte order.
+float texel(const tinygltf::Image& img, size_t i, int c) {
+  const size_t k = i * size_t(img.component) + size_t(c);
+  if (img.bits == 16) {
+    uint16_t v;
+    std::memcpy(&v, img.image.data() + 2 * k, 2);
+    return float(v) / 65535.f;
+  }
+  return float(img.image[k]) / 255.f;
 }
 
 // A node's local transform: its matrix, or T · R · S. The specification's constraints are checked
@@ -283,6 +261,44 @@ uint32_t read_index_value(const unsigned char* p, size_t size) {
                      : uint32_t(p[0] | (p[1] << 8) | (p[2] << 16) | (uint32_t(p[3]) << 24));
 }
 
+const char* component_type_name(int type) {
+  switch (type) {
+    case TINYGLTF_COMPONENT_TYPE_BYTE:
+      return "BYTE";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+      return "UNSIGNED_BYTE";
+    case TINYGLTF_COMPONENT_TYPE_SHORT:
+      return "SHORT";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT:
+      return "UNSIGNED_SHORT";
+    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT:
+      return "UNSIGNED_INT";
+    case TINYGLTF_COMPONENT_TYPE_FLOAT:
+      return "FLOAT";
+  }
+  return "unknown";
+}
+
+const char* type_name(int type) {
+  switch (type) {
+    case TINYGLTF_TYPE_SCALAR:
+      return "SCALAR";
+    case TINYGLTF_TYPE_VEC2:
+      return "VEC2";
+    case TINYGLTF_TYPE_VEC3:
+      return "VEC3";
+    case TINYGLTF_TYPE_VEC4:
+      return "VEC4";
+    case TINYGLTF_TYPE_MAT2:
+      return "MAT2";
+    case TINYGLTF_TYPE_MAT3:
+      return "MAT3";
+    case TINYGLTF_TYPE_MAT4:
+      return "MAT4";
+  }
+  return "unknown";
+}
+
 size_t index_size(int component_type) {
   return component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE    ? 1
          : component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 2
@@ -336,12 +352,14 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
     }
   };
   std::vector<float> out;
-  if (acc.bufferView >= 0 || !acc.sparse.isSparse) {
+  if (acc.bufferView >= 0) {
     const AccessorBytes bytes = accessor_bytes(model, index, element, path);
     out.resize(bytes.count * size_t(components));
     for (size_t i = 0; i < bytes.count; ++i) decode(bytes.data + i * bytes.stride, &out[i * size_t(components)]);
   } else {
-    // No bytes in the file back these zeros: the count alone is bounded, by the mesh limit.
+    // Without a buffer view an accessor reads as zeros (the specification's rule; a sparse
+    // accessor then substitutes its elements). No bytes in the file back these zeros: the count
+    // alone is bounded, by the mesh limit.
     limits::require_at_most(path, what + ": element count", acc.count, limits::kMeshElements);
     out.assign(acc.count * size_t(components), 0.f);
   }
@@ -369,11 +387,20 @@ std::vector<float> read_floats(const tinygltf::Model& model, int index, int comp
   return out;
 }
 
-std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& path) {
-  if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "index accessor out of range");
+// The indices of primitive `where`: SCALARs of unsigned bytes, shorts or ints (the specification's
+// types), from a dense accessor.
+std::vector<uint32_t> read_indices(const tinygltf::Model& model, int index, const std::string& where,
+                                   const std::string& path) {
+  if (index < 0 || size_t(index) >= model.accessors.size())
+    throw file_error(path, where + ": index accessor out of range");
   const auto& acc = model.accessors[size_t(index)];
+  const std::string what = where + ": indices (accessor " + std::to_string(index) + ")";
+  if (acc.type != TINYGLTF_TYPE_SCALAR)
+    throw file_error(path, what + ": type " + type_name(acc.type) + " (expected SCALAR)");
   const size_t size = index_size(acc.componentType);
-  if (!size) throw file_error(path, "unsupported index type");
+  if (!size)
+    throw file_error(path, what + ": component type " + component_type_name(acc.componentType) +
+                               " (expected UNSIGNED_BYTE, UNSIGNED_SHORT or UNSIGNED_INT)");
   if (acc.sparse.isSparse)
     throw file_error(path, "accessor " + std::to_string(index) + ": sparse triangle indices are not supported");
   const AccessorBytes bytes = accessor_bytes(model, index, size, path);
@@ -466,11 +493,16 @@ void apply_texture_transform(const tinygltf::Model& model, int material, std::ve
   }
 }
 
-// COLOR_0 as linear RGB per vertex (alpha dropped): VEC3 or VEC4 of floats or of normalized
-// unsigned bytes/shorts, the types the specification allows. Empty when every colour is white,
-// so such a mesh costs and renders exactly like one without colours.
-std::vector<Vec3f> read_vertex_colors(const tinygltf::Model& model, int index, const std::string& mesh,
-                                      const std::string& path) {
+// COLOR_0 as linear RGB per vertex: VEC3 or VEC4 of floats or of normalized unsigned bytes/shorts,
+// the types the specification allows. `rgb` is empty when every colour is white, so such a mesh
+// costs and renders exactly like one without colours; alpha matters only to a material whose
+// alphaMode is not OPAQUE, which needs its smallest value.
+struct VertexColors {
+  std::vector<Vec3f> rgb;
+  float min_alpha = 1.f;
+};
+VertexColors read_vertex_colors(const tinygltf::Model& model, int index, const std::string& mesh,
+                                const std::string& path) {
   if (index < 0 || size_t(index) >= model.accessors.size()) throw file_error(path, "accessor index out of range");
   const auto& acc = model.accessors[size_t(index)];
   const std::string what = "mesh '" + mesh.substr(0, 100) + "': COLOR_0 (accessor " + std::to_string(index) + ")";
@@ -480,16 +512,18 @@ std::vector<Vec3f> read_vertex_colors(const tinygltf::Model& model, int index, c
   if (!components || (acc.componentType != TINYGLTF_COMPONENT_TYPE_FLOAT && !normalized_unsigned))
     throw file_error(path, what + ": expected VEC3 or VEC4 of floats or normalized unsigned bytes or shorts");
   const std::vector<float> v = read_floats(model, index, components, path);
-  std::vector<Vec3f> colors;
+  VertexColors colors;
   bool white = true;
   for (size_t i = 0; i + size_t(components) <= v.size(); i += size_t(components)) {
+    for (int k = 0; k < components; ++k)
+      if (!(v[i + size_t(k)] >= 0.f && v[i + size_t(k)] <= 1.f))
+        throw file_error(path, what + ": colour values must be in [0, 1]");
     const Vec3f c(v[i], v[i + 1], v[i + 2]);
-    for (int k = 0; k < 3; ++k)
-      if (!(c[k] >= 0.f && c[k] <= 1.f)) throw file_error(path, what + ": colour values must be in [0, 1]");
     white = white && c.x == 1.f && c.y == 1.f && c.z == 1.f;
-    colors.push_back(c);
+    colors.rgb.push_back(c);
+    if (components == 4) colors.min_alpha = std::min(colors.min_alpha, v[i + 3]);
   }
-  if (white) colors.clear();
+  if (white) colors.rgb.clear();
   return colors;
 }
 
@@ -497,29 +531,13 @@ struct Primitive {
   Mesh mesh;  // world space, unpadded
   int material = -1;
   std::string name;
+  std::string where;             // "mesh 'name' primitive k", for messages
+  float min_vertex_alpha = 1.f;  // COLOR_0's smallest alpha
 };
 
 // The element count of accessor `index` (0 when the index is invalid: reading it reports that).
 uint64_t accessor_count(const tinygltf::Model& model, int index) {
   return index >= 0 && size_t(index) < model.accessors.size() ? uint64_t(model.accessors[size_t(index)].count) : 0;
-}
-
-const char* component_type_name(int type) {
-  switch (type) {
-    case TINYGLTF_COMPONENT_TYPE_BYTE:
-      return "BYTE";
-    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
-      return "UNSIGNED_BYTE";
-    case TINYGLTF_COMPONENT_TYPE_SHORT:
-      return "SHORT";
-    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT:
-      return "UNSIGNED_SHORT";
-    case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT:
-      return "UNSIGNED_INT";
-    case TINYGLTF_COMPONENT_TYPE_FLOAT:
-      return "FLOAT";
-  }
-  return "unknown";
 }
 
 // The component types the specification allows for POSITION, NORMAL and TEXCOORD_n: floats, and
@@ -588,6 +606,9 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
   // Point and line primitives, each counted once however often its mesh is instanced.
   std::set<std::pair<int, size_t>> unrendered;
   std::string first_unrendered;
+  // Meshes under a node scaled to 0 (a common way to hide an object): nothing of them is drawn.
+  size_t hidden_meshes = 0;
+  std::string first_hidden;
   // Totals over every instance, counted in a first pass that reads nothing: one mesh under
   // thousands of nodes, or one accessor in thousands of primitives, costs its size every time.
   uint64_t total_vertices = 0, total_indices = 0, total_shapes = 0;
@@ -598,10 +619,25 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
       throw file_error(path, "invalid node hierarchy: nesting exceeds the limit of " +
                                  std::to_string(limits::kNodeDepth) + " levels (or a cycle)");
     const auto& node = model.nodes[size_t(ni)];
+    const std::string node_name =
+        "node " + std::to_string(ni) + (node.name.empty() ? "" : " ('" + node.name.substr(0, 100) + "')");
+    // Skinned vertices are placed by their joints, not by the node: drawn unskinned they would
+    // stand in their bind pose wherever the node is.
+    if (node.skin >= 0) throw file_error(path, node_name + ": skins (skeletal animation) are not supported");
     Transform world = parent * node_local(node, ni, path);
+    const double det = linear_determinant(world);
     if (node.camera >= 0 && cameras && !counting) cameras->push_back({world, node.camera});
-    if (node.mesh >= 0) {
-      if (size_t(node.mesh) >= model.meshes.size()) throw file_error(path, "node references a missing mesh");
+    if (node.mesh >= 0 && size_t(node.mesh) >= model.meshes.size())
+      throw file_error(path, "node references a missing mesh");
+    // A node scaled to 0 (a common way to hide an object) draws nothing. One that flattens its
+    // mesh (determinant 0, rank 2) is skipped too: its normals are undefined.
+    const bool hidden = node.mesh >= 0 && det == 0;
+    if (hidden && !counting && hidden_meshes++ == 0) {
+      const std::string& mesh = model.meshes[size_t(node.mesh)].name;
+      first_hidden = node_name + ": its world transform scales to 0 (determinant 0), so its mesh '" +
+                     (mesh.empty() ? "mesh" + std::to_string(node.mesh) : mesh.substr(0, 100)) + "' is not rendered";
+    }
+    if (node.mesh >= 0 && !hidden) {
       const auto& gm = model.meshes[size_t(node.mesh)];
       for (size_t pi = 0; pi < gm.primitives.size(); ++pi) {
         const auto& prim = gm.primitives[pi];
@@ -619,6 +655,21 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
           throw file_error(path, where + ": material " + std::to_string(prim.material) + " is out of range");
         auto pos_it = prim.attributes.find("POSITION");
         if (pos_it == prim.attributes.end()) throw file_error(path, "primitive without POSITION");
+        // Morph targets move the vertices by Σ weight_k · target_k, with the node's weights, else
+        // the mesh's, else 0. backlight does not apply them: it reads a primitive only where
+        // they move nothing.
+        if (!prim.targets.empty()) {
+          const bool own = !node.weights.empty();
+          const std::vector<double>& weights = own ? node.weights : gm.weights;
+          const std::string whose = own ? node_name + " weights" : "mesh weights";
+          if (!weights.empty() && weights.size() != prim.targets.size())
+            throw file_error(path, where + ": " + std::to_string(weights.size()) + " " + whose + " for " +
+                                       std::to_string(prim.targets.size()) + " morph targets");
+          for (const double w : weights)
+            if (w != 0)
+              throw file_error(path,
+                               where + ": morph targets with weights other than 0 (" + whose + ") are not supported");
+        }
         if (counting) {
           const uint64_t vertices = accessor_count(model, pos_it->second);
           const uint64_t corners = prim.indices >= 0 ? accessor_count(model, prim.indices) : vertices;
@@ -654,14 +705,24 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
           // Without its uv set the material's textures would be sampled at one point.
           throw file_error(path, where + ": its material's textures read " + uv_set + ", which it does not have");
         }
-        if (auto it = prim.attributes.find("COLOR_0"); file_materials && it != prim.attributes.end())
-          p.mesh.colors = read_vertex_colors(model, it->second, gm.name, path);
+        if (auto it = prim.attributes.find("COLOR_0"); file_materials && it != prim.attributes.end()) {
+          VertexColors colors = read_vertex_colors(model, it->second, gm.name, path);
+          p.mesh.colors = std::move(colors.rgb);
+          p.min_vertex_alpha = colors.min_alpha;
+        }
         std::vector<uint32_t> corners;
         if (prim.indices >= 0) {
-          corners = read_indices(model, prim.indices, path);
+          corners = read_indices(model, prim.indices, where, path);
         } else {
           for (uint32_t i = 0; i < p.mesh.positions.size(); ++i) corners.push_back(i);
         }
+        if (mode == TINYGLTF_MODE_TRIANGLES && corners.size() % 3 != 0)
+          throw file_error(
+              path,
+              where + ": " +
+                  (prim.indices >= 0 ? "indices (accessor " + std::to_string(prim.indices) + ")"
+                                     : "POSITION (accessor " + std::to_string(pos_it->second) + ") without indices") +
+                  ": count " + std::to_string(corners.size()) + " is not a multiple of 3 (mode TRIANGLES)");
         p.mesh.indices = triangle_list(mode, corners);
         if ((!p.mesh.normals.empty() && p.mesh.normals.size() != p.mesh.positions.size()) ||
             (!p.mesh.uvs.empty() && p.mesh.uvs.size() != p.mesh.positions.size()) ||
@@ -672,13 +733,11 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
             throw file_error(path, "triangle index out of range in mesh '" + gm.name + "'");
         // glTF winding is counter-clockwise seen from the front, i.e. (p1−p0)×(p2−p0) is the front
         // normal; a mirroring node transform reverses it.
-        const float det = world.m[0][0] * (world.m[1][1] * world.m[2][2] - world.m[1][2] * world.m[2][1]) -
-                          world.m[0][1] * (world.m[1][0] * world.m[2][2] - world.m[1][2] * world.m[2][0]) +
-                          world.m[0][2] * (world.m[1][0] * world.m[2][1] - world.m[1][1] * world.m[2][0]);
         if (det < 0)
           for (size_t t = 0; t + 2 < p.mesh.indices.size(); t += 3)
             std::swap(p.mesh.indices[t + 1], p.mesh.indices[t + 2]);
         p.material = prim.material;
+        p.where = where;
         p.name = (gm.name.empty() ? "mesh" + std::to_string(node.mesh) : gm.name) +
                  (gm.primitives.size() > 1 ? "_" + std::to_string(pi) : "");
         out.push_back(std::move(p));
@@ -723,6 +782,11 @@ std::vector<Primitive> collect_primitives(const tinygltf::Model& model, const st
     warnings.push_back("backlight: " + path + ": warning: " + first_unrendered + ": points/lines are not rendered" +
                        (unrendered.size() > 1
                             ? " (nor are " + std::to_string(unrendered.size() - 1) + " more point/line primitives)"
+                            : ""));
+  if (hidden_meshes)
+    warnings.push_back("backlight: " + path + ": warning: " + first_hidden +
+                       (hidden_meshes > 1
+                            ? " (nor are the meshes of " + std::to_string(hidden_meshes - 1) + " more such nodes)"
                             : ""));
   return out;
 }
@@ -853,8 +917,8 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     s.param = scene->params.add(std::move(p), path);
     return s;
   };
-  // A texture's decoded 8-bit RGB(A) image, checked, and its wrap mode. `owner` names what refers
-  // to a missing texture, `what` the image in the other errors.
+  // A texture's decoded 8- or 16-bit RGB(A) image, checked, and its wrap mode. `owner` names what
+  // refers to a missing texture, `what` the image in the other errors.
   struct TextureImage {
     const tinygltf::Image* img;
     Wrap wrap;
@@ -865,16 +929,25 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     if (tex.source < 0 || size_t(tex.source) >= model.images.size())
       throw file_error(path, "texture " + std::to_string(texture) + " references a missing image");
     const auto& img = model.images[size_t(tex.source)];
-    if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 || img.bits != 8)
-      throw file_error(path, what + " '" + img.uri.substr(0, 200) + "' could not be decoded as 8-bit RGB(A)");
+    // tinygltf keeps the uri of an external image only, and only warns when it cannot read one.
+    const std::string image =
+        "image " + std::to_string(tex.source) + (img.uri.empty() ? std::string() : " '" + img.uri.substr(0, 200) + "'");
+    if (img.image.empty() && !img.uri.empty())
+      throw file_error(path, what + ": " + image + ": file not found or unreadable");
+    if (img.image.empty() || img.width <= 0 || img.height <= 0 || img.component < 3 ||
+        (img.bits != 8 && img.bits != 16))
+      throw file_error(path, what + ": " + image + " could not be decoded as 8- or 16-bit RGB(A)");
     limits::check_image_size(path + ": image " + std::to_string(tex.source), uint64_t(img.width), uint64_t(img.height));
-    if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component))
+    if (img.image.size() < size_t(img.width) * size_t(img.height) * size_t(img.component) * size_t(img.bits / 8))
       throw file_error(path, "image " + std::to_string(tex.source) + " holds fewer pixels than its size");
     if (tex.sampler >= 0 && size_t(tex.sampler) >= model.samplers.size())
       throw file_error(path, "texture references a missing sampler");
     const int wrap = tex.sampler >= 0 ? model.samplers[size_t(tex.sampler)].wrapS : 10497;
     if (tex.sampler >= 0) {
       const auto& sampler = model.samplers[size_t(tex.sampler)];
+      if (sampler.magFilter == TINYGLTF_TEXTURE_FILTER_NEAREST)
+        throw file_error(path, "sampler " + std::to_string(tex.sampler) +
+                                   ": magFilter 9728 (NEAREST) is not supported (bitmap textures are bilinear)");
       for (const int w : {sampler.wrapS, sampler.wrapT})
         if (w != 33071 && w != 33648 && w != 10497)
           throw file_error(path, "sampler " + std::to_string(tex.sampler) + ": wrap mode " + std::to_string(w) +
@@ -887,7 +960,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     }
     return TextureImage{&img, wrap == 33071 ? Wrap::Clamp : wrap == 33648 ? Wrap::Mirror : Wrap::Repeat};
   };
-  // An sRGB 8-bit glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
+  // An sRGB glTF texture as a bitmap parameter: linear texels × `factor`, at most `upper`.
   auto texture_param = [&](int texture, const std::vector<float>& factor, float upper, const std::string& name,
                            const std::string& what) {
     const TextureImage t = texture_image(texture, name + ":", what);
@@ -895,14 +968,13 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     std::vector<float> v(size_t(img.width) * size_t(img.height) * 3);
     for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
       for (int c = 0; c < 3; ++c)
-        v[i * 3 + size_t(c)] = std::min(
-            upper, srgb_to_linear(float(img.image[i * size_t(img.component) + size_t(c)]) / 255.f) * factor[size_t(c)]);
+        v[i * 3 + size_t(c)] = std::min(upper, srgb_to_linear(texel(img, i, c)) * factor[size_t(c)]);
     TextureSlot slot = add_param(name, {img.height, img.width, 3}, std::move(v), 0.f, upper);
     slot.bitmap = true;
     slot.wrap = t.wrap;
     return slot;
   };
-  // A linear 8-bit glTF texture's channel `channel`, f(texel in [0, 1]) per texel, for a
+  // A linear glTF texture's channel `channel`, f(texel in [0, 1]) per texel, for a
   // one-channel bitmap parameter (metallicRoughnessTexture: roughness in G, metallic in B).
   struct ChannelMap {
     int height = 0, width = 0;
@@ -915,8 +987,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     ChannelMap map;
     map.height = img.height, map.width = img.width;
     map.values.resize(size_t(img.width) * size_t(img.height));
-    for (size_t i = 0; i < map.values.size(); ++i)
-      map.values[i] = f(float(img.image[i * size_t(img.component) + size_t(channel)]) / 255.f);
+    for (size_t i = 0; i < map.values.size(); ++i) map.values[i] = f(texel(img, i, channel));
     map.wrap = t.wrap;
     return map;
   };
@@ -989,6 +1060,76 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     return material_of[gi] = int(scene->materials.size() - 1);
   };
 
+  // glTF's alphaMode: OPAQUE ignores alpha, MASK draws only where alpha ≥ alphaCutoff and BLEND
+  // composites by alpha. backlight's surfaces are opaque, so MASK and BLEND are read only where
+  // they draw exactly that: alpha = baseColorFactor[3] × base-colour texture alpha × COLOR_0 alpha
+  // is 1 everywhere for BLEND, ≥ alphaCutoff everywhere for MASK. The product of the three minima
+  // is a lower bound of alpha: a cut-out it cannot rule out is refused.
+  std::map<int, float> texture_min_alpha;
+  auto check_alpha = [&](const Primitive& p) {
+    const auto& gm = model.materials[size_t(p.material)];
+    if (gm.alphaMode == "OPAQUE") return;
+    const auto& pbr = gm.pbrMetallicRoughness;
+    const double factor = pbr.baseColorFactor.size() > 3 ? pbr.baseColorFactor[3] : 1.0;
+    float texture = 1.f;
+    if (const int t = pbr.baseColorTexture.index; t >= 0) {
+      auto it = texture_min_alpha.find(t);
+      if (it == texture_min_alpha.end()) {
+        const tinygltf::Image& img = *texture_image(t, "base colour texture", "base colour texture").img;
+        float lowest = 1.f;
+        if (img.component == 4)
+          for (size_t i = 0; i < size_t(img.width) * size_t(img.height); ++i)
+            lowest = std::min(lowest, texel(img, i, 3));
+        it = texture_min_alpha.emplace(t, lowest).first;
+      }
+      texture = it->second;
+    }
+    const double alpha = factor * texture * p.min_vertex_alpha;
+    const bool mask = gm.alphaMode == "MASK";
+    if (mask ? alpha >= gm.alphaCutoff : alpha == 1.0) return;
+    std::string sources;
+    auto source = [&](double value, const std::string& name) {
+      if (value < 1) sources += (sources.empty() ? "" : ", ") + name + number_text(value);
+    };
+    source(factor, "baseColorFactor alpha ");
+    source(texture, "base colour texture alpha down to ");
+    source(p.min_vertex_alpha, "COLOR_0 alpha down to ");
+    throw file_error(
+        path,
+        p.where + ": material '" + gm.name.substr(0, 100) + "': alphaMode " + gm.alphaMode +
+            (mask ? " cuts out where alpha < alphaCutoff " + number_text(gm.alphaCutoff) : " blends where alpha < 1") +
+            ", and alpha here goes down to " + number_text(alpha) + (sources.empty() ? "" : " (" + sources + ")") +
+            ": backlight's surfaces are opaque (make the material OPAQUE, or its alpha 1)");
+  };
+  for (const auto& p : prims)
+    if (p.material >= 0 && size_t(p.material) < model.materials.size()) check_alpha(p);
+
+  // A normal map or an occlusion map changes shading without changing what is drawn: both are
+  // ignored, with one warning for the file naming the first material that has them.
+  {
+    std::set<int> seen;
+    std::string first;
+    size_t more = 0;
+    for (const auto& p : prims) {
+      if (p.material < 0 || size_t(p.material) >= model.materials.size() || !seen.insert(p.material).second) continue;
+      const auto& gm = model.materials[size_t(p.material)];
+      const bool normal = gm.normalTexture.index >= 0, occlusion = gm.occlusionTexture.index >= 0;
+      if (!normal && !occlusion) continue;
+      if (!first.empty()) {
+        ++more;
+        continue;
+      }
+      first = "material '" + gm.name.substr(0, 100) +
+              "': " + (normal ? "normalTexture (shading uses the mesh's normals)" : "") +
+              (normal && occlusion ? " and " : "") +
+              (occlusion ? "occlusionTexture (path tracing computes occlusion itself)" : "") +
+              (normal && occlusion ? " are" : " is") + " ignored";
+    }
+    if (!first.empty())
+      warnings.push_back("backlight: " + path + ": warning: " + first +
+                         (more ? " (so are those of " + std::to_string(more) + " more materials)" : ""));
+  }
+
   UniqueNames shape_names;
   std::map<int, TextureSlot> emission_of;  // glTF material → its emissive texture parameter
   for (auto& p : prims) {
@@ -1036,11 +1177,36 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
     scene->meshes.push_back(std::move(mesh));
   }
 
-  // Cameras: every perspective camera in the file, else one framing the bounding box.
+  // glTF clips at view-space depth zfar when one is given (else the projection is infinite), and
+  // backlight's camera rays are not clipped. As for Mitsuba's far_clip (scene_xml.cpp), a zfar
+  // that nothing reaches cannot change the image and is ignored; one that clips a shape is
+  // refused. The view space is the camera node's world transform M inverted: a point p lies at
+  // depth −((c0 × c1) · (p − o)) / det M, with c0, c1 the first two columns of M's linear part and
+  // o its translation.
+  auto check_zfar = [&](const tinygltf::PerspectiveCamera& pc, const Transform& xf, double det,
+                        const std::string& what) {
+    if (pc.zfar <= 0) return;  // absent (an explicit value ≤ 0 is refused in the JSON)
+    if (!(pc.zfar > pc.znear)) throw file_error(path, what + ": zfar must exceed znear");
+    const Vec3d c0(xf.m[0][0], xf.m[1][0], xf.m[2][0]), c1(xf.m[0][1], xf.m[1][1], xf.m[2][1]);
+    const Vec3d back = cross(c0, c1) * (1.0 / det), origin(xf.m[0][3], xf.m[1][3], xf.m[2][3]);
+    for (const Mesh& m : scene->meshes)
+      for (size_t v = 0; v < m.vertex_count(); ++v) {
+        const double depth = -dot(back, Vec3d(m.positions[v]) - origin);
+        if (depth > pc.zfar)
+          throw file_error(path, what + ": zfar " + number_text(pc.zfar) + " clips shape '" + m.name + "' (at depth " +
+                                     number_text(depth) +
+                                     ") (camera rays are not clipped here: give a zfar beyond the scene, or none)");
+      }
+  };
+
+  // Cameras: every camera of the default scene (perspective: others are refused), else one
+  // framing the bounding box.
   for (auto& [xf, ci] : cameras) {
     if (ci < 0 || size_t(ci) >= model.cameras.size()) throw file_error(path, "node references a missing camera");
     const auto& gc = model.cameras[size_t(ci)];
-    if (gc.type != "perspective") continue;
+    if (gc.type != "perspective")
+      throw file_error(path, "camera " + std::to_string(ci) + ": " + gc.type.substr(0, 100) +
+                                 " cameras are not supported (perspective ones are)");
     // The JSON scenes' limit on fov: the film plane of a wider view is numerically unusable.
     if (!(gc.perspective.yfov > 0 && gc.perspective.yfov <= 179.9 * M_PI / 180.0))
       throw file_error(path, "camera " + std::to_string(ci) + ": yfov must be in (0, π) and at most 179.9°");
@@ -1048,6 +1214,15 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
       throw file_error(path, "camera " + std::to_string(ci) + ": negative aspectRatio");
     if (!(gc.perspective.znear > 0))
       throw file_error(path, "camera " + std::to_string(ci) + ": znear must be positive");
+    // The view is the camera node's world transform inverted: one that mirrors would mirror the
+    // image, which backlight's cameras (an origin, a target and an up vector) cannot.
+    const double det = linear_determinant(xf);
+    if (det < 0)
+      throw file_error(path, "camera " + std::to_string(ci) +
+                                 ": its node's world transform mirrors (determinant < 0); backlight's cameras cannot "
+                                 "mirror the image");
+    if (!(det > 0)) throw file_error(path, "camera " + std::to_string(ci) + ": its node's world transform scales to 0");
+    check_zfar(gc.perspective, xf, det, "camera " + std::to_string(ci));
     Camera c;
     // Unique among shapes and cameras (their pose parameters are named after them).
     c.name = shape_names.make(sanitize(gc.name.empty() ? "camera" + std::to_string(ci) : gc.name));

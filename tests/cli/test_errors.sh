@@ -314,6 +314,48 @@ expect_error gltf_color_type "color.gltf" "COLOR_0 (accessor 6): expected VEC3 o
 expect_error gltf_shape_in_json "garbage.gltf" "invalid glTF" -- \
   render "$(v gshape 's["shapes"][0] = {"name": "g", "type": "gltf", "file": "../garbage.gltf", "material": "white"}')" \
     -o o.exr --resolution 8x8 --spp 1
+# glTF constructs backlight cannot render as the specification says are refused by name.
+expect_error gltf_morph_targets "morph.gltf" "mesh 'gold_cube' primitive 0: morph targets with weights other than 0" -- \
+  render "$(gv morph 's["meshes"][1]["primitives"][0]["targets"] = [{"POSITION": 5}]; s["meshes"][1]["weights"] = [1]')" \
+    -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_skin "skin.gltf" "node 2 ('gold_cube'): skins (skeletal animation) are not supported" -- \
+  render "$(gv skin 's["accessors"].append({"componentType": 5126, "count": 1, "type": "MAT4"})
+s["skins"] = [{"joints": [2], "inverseBindMatrices": 16}]; s["nodes"][2]["skin"] = 0')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_alpha_blend "blend.gltf" "material 'gold': alphaMode BLEND blends where alpha < 1" -- \
+  render "$(gv blend 's["materials"][1]["alphaMode"] = "BLEND"
+s["materials"][1]["pbrMetallicRoughness"]["baseColorFactor"][3] = 0.5')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_orthographic "ortho.gltf" "camera 0: orthographic cameras are not supported" -- \
+  render "$(gv ortho 's["cameras"][0] = {"type": "orthographic",
+"orthographic": {"xmag": 1, "ymag": 1, "znear": 0.1, "zfar": 100}}')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_zfar "zfar.gltf" "camera 0: zfar 5 clips shape 'ground'" -- \
+  render "$(gv zfar 's["cameras"][0]["perspective"]["zfar"] = 5')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_nearest "nearest.gltf" "sampler 0: magFilter 9728 (NEAREST) is not supported" -- \
+  render "$(gv nearest 's["samplers"][0]["magFilter"] = 9728')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_version "v1.gltf" "asset.version 1.0: backlight reads glTF 2.x files only" -- \
+  render "$(gv v1 's["asset"]["version"] = "1.0"')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_missing_image "noimg.gltf" "image 0 'nope.png': file not found or unreadable" -- \
+  render "$(gv noimg 's["images"][0]["uri"] = "nope.png"')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_index_count "icount5.gltf" "indices (accessor 3): count 5 is not a multiple of 3" -- \
+  render "$(gv icount5 's["accessors"][3]["count"] = 5')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_camera_mirror "cammirror.gltf" "camera 0: its node's world transform mirrors" -- \
+  render "$(gv cammirror 's["nodes"][5]["scale"] = [-1, 1, 1]')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_yfov_missing "noyfov.gltf" "camera 0: perspective.yfov is missing" -- \
+  render "$(gv noyfov 'del s["cameras"][0]["perspective"]["yfov"]')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_negative_index "negcam.gltf" "node 5 ('camera'): camera must be a non-negative integer" -- \
+  render "$(gv negcam 's["nodes"][5]["camera"] = -1')" -o o.exr --resolution 8x8 --spp 1
+# What backlight ignores or skips gets one warning per file.
+if expect_ok gltf_ignored_maps render "$(gv maps 's["materials"][0]["normalTexture"] = {"index": 0}
+s["materials"][2]["occlusionTexture"] = {"index": 0}')" -o maps.exr --resolution 8x8 --spp 1 -q; then
+  { [ "$(grep -c warning err.gltf_ignored_maps)" -eq 1 ] &&
+    grep -qF "maps.gltf: warning: material 'ground': normalTexture (shading uses the mesh's normals) is ignored (so are those of 1 more materials)" err.gltf_ignored_maps; } ||
+    fail "gltf_ignored_maps: expected one warning naming the normal texture: $(cat err.gltf_ignored_maps)"
+fi
+if expect_ok gltf_zero_scale render "$(gv scale0 's["nodes"][1]["scale"] = [0, 0, 0]')" -o scale0.exr \
+  --resolution 8x8 --spp 1 -q; then
+  { [ "$(grep -c warning err.gltf_zero_scale)" -eq 1 ] &&
+    grep -qF "scale0.gltf: warning: node 2 ('gold_cube'): its world transform scales to 0 (determinant 0), so its mesh 'gold_cube' is not rendered (nor are the meshes of 1 more such nodes)" err.gltf_zero_scale; } ||
+    fail "gltf_zero_scale: expected one warning naming the hidden nodes: $(cat err.gltf_zero_scale)"
+fi
 
 # Media.
 mkdir -p vol && cp "$repo/scenes/mitsuba-volume/scene.json" "$repo/scenes/mitsuba-volume/density.vol" vol/

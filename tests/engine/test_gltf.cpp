@@ -1,7 +1,9 @@
 // glTF loading details a user meets on real files: the default camera (a file without one) keeps
 // the whole model in view at any film aspect, a file that requires an extension backlight does
 // not implement is refused by the extension's name, metallic factors between 0 and 1 blend the
-// two lobes, and vertex colours (COLOR_0) multiply the base colour, gradients included.
+// two lobes, and vertex colours (COLOR_0) multiply the base colour, gradients included. What
+// backlight cannot render as the specification says is refused by name, and what it ignores
+// warns once per file.
 #include <unistd.h>
 #include <catch2/catch.hpp>
 
@@ -389,7 +391,8 @@ TEST_CASE("metallicFactor strictly between 0 and 1 becomes the metallic-roughnes
 namespace {
 // A 2 × 2 quad facing +z with per-vertex colours: bottom-left red, bottom-right green, top-right
 // blue, top-left red. `colours` is "float3" (VEC3 floats), "ubyte4" (VEC4 normalized unsigned
-// bytes, alpha 255), "half" (VEC3 floats, all 0.5), "byte_raw" (VEC4 unsigned bytes without
+// bytes, alpha 255), "ubyte4_alpha" (the same with alpha 51 at the top-right vertex), "half" (VEC3
+// floats, all 0.5), "byte_raw" (VEC4 unsigned bytes without
 // `normalized`, which the specification forbids) or "" (no COLOR_0).
 std::string write_coloured_quad(const TempDir& tmp, const std::string& name, const std::string& colours,
                                 double metallic = 0.0) {
@@ -397,9 +400,10 @@ std::string write_coloured_quad(const TempDir& tmp, const std::string& name, con
   const float pos[4][3] = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
   const float rgb[4][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}, {1, 0, 0}};
   const float half[4][3] = {{0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}};
-  const uint8_t rgba[4][4] = {{255, 0, 0, 255}, {0, 255, 0, 255}, {0, 0, 255, 255}, {255, 0, 0, 255}};
+  uint8_t rgba[4][4] = {{255, 0, 0, 255}, {0, 255, 0, 255}, {0, 0, 255, 255}, {255, 0, 0, 255}};
+  if (colours == "ubyte4_alpha") rgba[2][3] = 51;
   const uint16_t idx[6] = {0, 1, 2, 0, 2, 3};
-  const bool bytes = colours == "ubyte4" || colours == "byte_raw";
+  const bool bytes = colours == "ubyte4" || colours == "ubyte4_alpha" || colours == "byte_raw";
   const size_t colour_bytes = colours.empty() ? 0 : bytes ? sizeof rgba : sizeof rgb;
   // Buffer: positions (0..48), colours (48..), indices.
   std::ofstream bin(tmp(name + ".bin"), std::ios::binary);
@@ -425,7 +429,7 @@ std::string write_coloured_quad(const TempDir& tmp, const std::string& name, con
     views.push_back({{"buffer", 0}, {"byteOffset", 48}, {"byteLength", colour_bytes}});
     json colour = {
         {"bufferView", 2}, {"componentType", bytes ? 5121 : 5126}, {"count", 4}, {"type", bytes ? "VEC4" : "VEC3"}};
-    if (colours == "ubyte4") colour["normalized"] = true;
+    if (colours == "ubyte4" || colours == "ubyte4_alpha") colour["normalized"] = true;
     accessors.push_back(colour);
     attributes["COLOR_0"] = 2;
   }
@@ -964,4 +968,398 @@ TEST_CASE("a binary glTF of a version other than 2 is refused", "[gltf][errors]"
   CHECK(load_error(write_glb("v2.glb", 2)).empty());
   const std::string e = load_error(write_glb("v1.glb", 1));
   CHECK_THAT(e, Catch::Contains("v1.glb: invalid glTF: binary glTF version 1 (expected 2)"));
+}
+
+namespace {
+// A glTF variant that must be refused: `message` is part of its one-line error.
+struct RefusedVariant {
+  const char* name;
+  std::function<void(nlohmann::json&)> edit;
+  const char* message;
+};
+void check_refused(const TempDir& tmp, const std::vector<RefusedVariant>& cases) {
+  for (const RefusedVariant& c : cases) {
+    CAPTURE(c.name);
+    const std::string e = load_error(bundled_variant(tmp, std::string(c.name) + ".gltf", c.edit));
+    CHECK_THAT(e, Catch::Contains(c.message) && Catch::Contains(std::string(c.name) + ".gltf: "));
+    CHECK(e.find('\n') == std::string::npos);
+  }
+}
+// The error of a bundled variant ("" when it loads).
+std::string variant_error(const TempDir& tmp, const std::string& name,
+                          const std::function<void(nlohmann::json&)>& edit) {
+  return load_error(bundled_variant(tmp, name, edit));
+}
+
+// A PNG of `width` × `height` pixels of `channels` samples (3: RGB, 4: RGBA) of `bits` bits (8 or
+// 16), row by row, its pixel data in one stored (uncompressed) deflate block: the 16-bit and alpha
+// images write_image does not make.
+std::string png_bytes(int width, int height, int channels, int bits, const std::vector<uint16_t>& samples) {
+  auto crc32 = [](const std::string& bytes) {
+    uint32_t c = 0xFFFFFFFFu;
+    for (const unsigned char b : bytes) {
+      c ^= b;
+      for (int k = 0; k < 8; ++k) c = (c >> 1) ^ (0xEDB88320u & (0u - (c & 1u)));
+    }
+    return c ^ 0xFFFFFFFFu;
+  };
+  auto be32 = [](uint32_t v) { return std::string{char(v >> 24), char(v >> 16), char(v >> 8), char(v)}; };
+  auto chunk = [&](const std::string& type, const std::string& data) {
+    return be32(uint32_t(data.size())) + type + data + be32(crc32(type + data));
+  };
+  std::string raw;  // per row: filter type 0, then the samples, big-endian
+  size_t k = 0;
+  for (int y = 0; y < height; ++y) {
+    raw += '\0';
+    for (int x = 0; x < width * channels; ++x, ++k) {
+      if (bits == 16) raw += char(samples[k] >> 8);
+      raw += char(samples[k] & 0xFF);
+    }
+  }
+  uint32_t a = 1, b = 0;  // Adler-32
+  for (const unsigned char c : raw) a = (a + c) % 65521, b = (b + a) % 65521;
+  const uint16_t n = uint16_t(raw.size()), not_n = uint16_t(~n);
+  const std::string zlib = std::string("\x78\x01\x01", 3) + char(n & 0xFF) + char(n >> 8) + char(not_n & 0xFF) +
+                           char(not_n >> 8) + raw + be32((b << 16) | a);
+  const std::string header =
+      be32(uint32_t(width)) + be32(uint32_t(height)) + char(bits) + char(channels == 4 ? 6 : 2) + std::string(3, '\0');
+  return std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", header) + chunk("IDAT", zlib) + chunk("IEND", "");
+}
+void write_file(const std::string& path, const std::string& bytes) { std::ofstream(path, std::ios::binary) << bytes; }
+}  // namespace
+
+TEST_CASE("glTF morph targets are refused unless their weights are all 0", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  // The gold cube's normals (accessor 5, 24 VEC3 floats) as a position target.
+  const auto with_target = [](json& s) { s["meshes"][1]["primitives"][0]["targets"] = {{{"POSITION", 5}}}; };
+  check_refused(tmp, {{"mesh_weight",
+                       [&](json& s) {
+                         with_target(s);
+                         s["meshes"][1]["weights"] = {0.5};
+                       },
+                       "mesh 'gold_cube' primitive 0: morph targets with weights other than 0 (mesh weights) are not "
+                       "supported"},
+                      {"node_weight",
+                       [&](json& s) {
+                         with_target(s);
+                         s["meshes"][1]["weights"] = {0.0};
+                         s["nodes"][2]["weights"] = {1.0};
+                       },
+                       "morph targets with weights other than 0 (node 2 ('gold_cube') weights)"},
+                      {"weight_count",
+                       [&](json& s) {
+                         with_target(s);
+                         s["meshes"][1]["weights"] = {0.0, 0.0};
+                       },
+                       "mesh 'gold_cube' primitive 0: 2 mesh weights for 1 morph targets"}});
+  // Weights of 0 (given or by default) move nothing: such a file loads, the node's weights
+  // overriding the mesh's.
+  CHECK(variant_error(tmp, "no_weights.gltf", with_target).empty());
+  CHECK(variant_error(tmp, "zero_node_weights.gltf", [&](json& s) {
+          with_target(s);
+          s["meshes"][1]["weights"] = {1.0};
+          s["nodes"][2]["weights"] = {0.0};
+        }).empty());
+}
+
+TEST_CASE("a glTF node with a skin is refused", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(tmp, {{"skin",
+                       [](json& s) {
+                         // tinygltf requires inverseBindMatrices (the specification does not):
+                         // one MAT4 of zeros (an accessor without a buffer view).
+                         s["accessors"].push_back({{"componentType", 5126}, {"count", 1}, {"type", "MAT4"}});
+                         s["skins"] = {{{"joints", {2}}, {"inverseBindMatrices", 16}}};
+                         s["nodes"][2]["skin"] = 0;
+                       },
+                       "node 2 ('gold_cube'): skins (skeletal animation) are not supported"}});
+}
+
+TEST_CASE("glTF alphaMode MASK and BLEND are refused unless every alpha keeps the surface opaque",
+          "[gltf][errors][material]") {
+  TempDir tmp;
+  using nlohmann::json;
+  const auto gold = [](const char* mode, double alpha) {
+    return [=](json& s) {
+      s["materials"][1]["alphaMode"] = mode;
+      s["materials"][1]["pbrMetallicRoughness"]["baseColorFactor"][3] = alpha;
+    };
+  };
+  check_refused(
+      tmp, {{"blend", gold("BLEND", 0.5),
+             "mesh 'gold_cube' primitive 0: material 'gold': alphaMode BLEND blends where alpha < 1, and alpha here "
+             "goes down to 0.5 (baseColorFactor alpha 0.5): backlight's surfaces are opaque"},
+            {"mask", gold("MASK", 0.4),
+             "material 'gold': alphaMode MASK cuts out where alpha < alphaCutoff 0.5, and alpha here goes down to 0.4"},
+            {"mask_cutoff",
+             [&](json& s) {
+               gold("MASK", 0.6)(s);
+               s["materials"][1]["alphaCutoff"] = 0.7;
+             },
+             "alphaMode MASK cuts out where alpha < alphaCutoff 0.7"}});
+  // Alphas that change nothing load; OPAQUE ignores alpha, as glTF says.
+  CHECK(variant_error(tmp, "blend1.gltf", gold("BLEND", 1.0)).empty());
+  CHECK(variant_error(tmp, "mask06.gltf", gold("MASK", 0.6)).empty());
+  CHECK(variant_error(tmp, "opaque0.gltf", gold("OPAQUE", 0.0)).empty());
+  // The base-colour texture's alpha channel (8- and 16-bit), over every texel.
+  for (const int bits : {8, 16}) {
+    CAPTURE(bits);
+    const uint16_t opaque = bits == 8 ? 255 : 65535;
+    const std::string suffix = std::to_string(bits) + ".png";
+    write_file(tmp("transparent" + suffix), png_bytes(2, 1, 4, bits, {200, 100, 50, opaque, 10, 20, 30, 0}));
+    write_file(tmp("opaque" + suffix), png_bytes(2, 1, 4, bits, {200, 100, 50, opaque, 10, 20, 30, opaque}));
+    const auto ground = [&](const std::string& image) {
+      return [=](json& s) {
+        s["images"][0]["uri"] = image;
+        s["materials"][0]["alphaMode"] = "BLEND";
+      };
+    };
+    CHECK_THAT(variant_error(tmp, "tex_alpha.gltf", ground("transparent" + suffix)),
+               Catch::Contains("material 'ground': alphaMode BLEND blends where alpha < 1, and alpha here goes down "
+                               "to 0 (base colour texture alpha down to 0)"));
+    CHECK(variant_error(tmp, "tex_opaque.gltf", ground("opaque" + suffix)).empty());
+  }
+  // COLOR_0's alpha (a VEC4 with alpha 0.2 at one vertex).
+  const std::string quad = write_coloured_quad(tmp, "alpha.gltf", "ubyte4_alpha");
+  for (const char* mode : {"OPAQUE", "MASK", "BLEND"}) {
+    CAPTURE(mode);
+    std::ifstream in(quad);
+    json gltf = json::parse(in);
+    gltf["materials"][0]["alphaMode"] = mode;
+    std::ofstream(tmp("alpha_mode.gltf")) << gltf.dump();
+    const std::string e = load_error(tmp("alpha_mode.gltf"));
+    if (std::string(mode) == "OPAQUE")
+      CHECK(e.empty());
+    else
+      CHECK_THAT(e, Catch::Contains("and alpha here goes down to 0.2 (COLOR_0 alpha down to 0.2)"));
+  }
+}
+
+TEST_CASE("glTF normal and occlusion textures are ignored with one warning per file", "[gltf]") {
+  TempDir tmp;
+  using nlohmann::json;
+  std::string file = bundled_variant(tmp, "maps.gltf", [](json& s) {
+    s["materials"][0]["normalTexture"] = {{"index", 0}};
+    s["materials"][2]["occlusionTexture"] = {{"index", 0}, {"strength", 0.5}};
+    s["materials"][3]["normalTexture"] = {{"index", 0}};
+    s["materials"][3]["occlusionTexture"] = {{"index", 0}};
+  });
+  std::unique_ptr<Scene> scene;
+  CHECK(stderr_of(tmp, [&] { scene = load_scene(file); }) ==
+        "backlight: " + file +
+            ": warning: material 'ground': normalTexture (shading uses the mesh's normals) is ignored (so are those "
+            "of 2 more materials)\n");
+  REQUIRE(scene);
+  CHECK(scene->meshes.size() == 4);
+  file = bundled_variant(tmp, "both.gltf", [](json& s) {
+    s["materials"][2]["normalTexture"] = {{"index", 0}};
+    s["materials"][2]["occlusionTexture"] = {{"index", 0}};
+  });
+  CHECK(stderr_of(tmp, [&] { load_scene(file); }) ==
+        "backlight: " + file +
+            ": warning: material 'blue_plastic': normalTexture (shading uses the mesh's normals) and occlusionTexture "
+            "(path tracing computes occlusion itself) are ignored\n");
+  // The bundled scene has neither: no warning.
+  const std::string plain = bundled_variant(tmp, "plain.gltf", [](json&) {});
+  CHECK(stderr_of(tmp, [&] { load_scene(plain); }).empty());
+}
+
+TEST_CASE("glTF cameras backlight cannot reproduce are refused: orthographic, mirrored, scaled to 0",
+          "[gltf][errors][camera]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(
+      tmp,
+      {{"ortho",
+        [](json& s) {
+          s["cameras"][0] = {{"type", "orthographic"},
+                             {"orthographic", {{"xmag", 1}, {"ymag", 1}, {"znear", 0.1}, {"zfar", 100}}}};
+        },
+        "camera 0: orthographic cameras are not supported (perspective ones are)"},
+       {"mirror",
+        [](json& s) {
+          s["nodes"][5]["scale"] = {-1, 1, 1};
+        },
+        "camera 0: its node's world transform mirrors (determinant < 0)"},
+       {"flat",
+        [](json& s) {
+          s["nodes"][5]["scale"] = {1, 0, 1};
+        },
+        "camera 0: its node's world transform scales to 0"},
+       // tinygltf's own message spoke of an orthographic camera.
+       {"yfov", [](json& s) { s["cameras"][0]["perspective"].erase("yfov"); }, "camera 0: perspective.yfov is missing"},
+       {"znear", [](json& s) { s["cameras"][0]["perspective"].erase("znear"); },
+        "camera 0: perspective.znear is missing"},
+       {"perspective", [](json& s) { s["cameras"][0].erase("perspective"); },
+        "camera 0: a perspective camera needs a perspective object"}});
+  // An orthographic camera no node of the default scene uses is never rendered: it loads.
+  CHECK(variant_error(tmp, "unused_ortho.gltf", [](json& s) {
+          s["cameras"].push_back(
+              {{"type", "orthographic"}, {"orthographic", {{"xmag", 1}, {"ymag", 1}, {"znear", 0.1}, {"zfar", 100}}}});
+        }).empty());
+}
+
+TEST_CASE("a glTF zfar that clips the scene is refused; one beyond it is ignored", "[gltf][errors][camera]") {
+  TempDir tmp;
+  using nlohmann::json;
+  const auto zfar = [](double z, double scale = 1) {
+    return [=](json& s) {
+      s["cameras"][0]["perspective"]["zfar"] = z;
+      if (scale != 1) s["nodes"][5]["scale"] = {scale, scale, scale};
+    };
+  };
+  // The ground's far corners lie at depth 9.88 from the camera.
+  check_refused(tmp, {{"zfar5", zfar(5), "camera 0: zfar 5 clips shape 'ground' (at depth 9.87"},
+                      {"zfar6", zfar(6), "camera 0: zfar 6 clips shape 'ground'"},
+                      {"zfar_near", zfar(0.01), "camera 0: zfar must exceed znear"},
+                      {"zfar0", zfar(0), "camera 0: zfar must be a positive number"}});
+  CHECK(variant_error(tmp, "zfar20.gltf", zfar(20)).empty());
+  // Depth is measured in the camera's view space: a camera node scaled by 2 sees the ground at
+  // depth 4.94.
+  CHECK(variant_error(tmp, "zfar6_scaled.gltf", zfar(6, 2)).empty());
+}
+
+TEST_CASE("glTF NEAREST magnification is refused", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(tmp, {{"nearest", [](json& s) { s["samplers"][0]["magFilter"] = 9728; },
+                       "sampler 0: magFilter 9728 (NEAREST) is not supported (bitmap textures are bilinear)"}});
+}
+
+TEST_CASE("glTF files of another major version, or needing a newer reader, are refused", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(tmp, {{"v1", [](json& s) { s["asset"]["version"] = "1.0"; },
+                       "asset.version 1.0: backlight reads glTF 2.x files only"},
+                      {"v3", [](json& s) { s["asset"]["version"] = "3.0"; }, "asset.version 3.0"},
+                      {"min21", [](json& s) { s["asset"]["minVersion"] = "2.1"; },
+                       "asset.minVersion 2.1: the file needs a glTF reader of that version (backlight reads glTF 2.0)"},
+                      {"text", [](json& s) { s["asset"]["version"] = "two"; },
+                       "asset.version \"two\" is not of the form major.minor"}});
+  // A newer minor version only adds what a 2.0 reader may ignore.
+  CHECK(variant_error(tmp, "v21.gltf", [](json& s) { s["asset"]["version"] = "2.1"; }).empty());
+  CHECK(variant_error(tmp, "min20.gltf", [](json& s) { s["asset"]["minVersion"] = "2.0"; }).empty());
+}
+
+TEST_CASE("a glTF image file that is missing is named as missing", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(tmp, {{"missing", [](json& s) { s["images"][0]["uri"] = "nope.png"; },
+                       "base colour texture: image 0 'nope.png': file not found or unreadable"}});
+}
+
+TEST_CASE("16-bit PNG textures in glTF are read at full precision", "[gltf]") {
+  TempDir tmp;
+  using nlohmann::json;
+  const std::vector<uint16_t> samples = {65535, 32768, 0, 1000, 50000, 65535};
+  write_file(tmp("deep.png"), png_bytes(2, 1, 3, 16, samples));
+  auto scene = load_scene(bundled_variant(tmp, "deep.gltf", [](json& s) { s["images"][0]["uri"] = "deep.png"; }));
+  const int albedo = scene->params.find("ground.albedo");
+  REQUIRE(albedo >= 0);
+  REQUIRE(scene->params[albedo].shape == std::vector<int>{1, 2, 3});
+  // sRGB decoded from value / 65535, as 8-bit textures are from value / 255.
+  for (size_t k = 0; k < samples.size(); ++k) {
+    CAPTURE(k);
+    CHECK(scene->params[albedo].value[k] == srgb_to_linear(float(samples[k]) / 65535.f));
+  }
+  // An 8-bit image of the same shape reads value / 255, as before.
+  write_file(tmp("shallow.png"), png_bytes(2, 1, 3, 8, {255, 128, 0, 4, 195, 255}));
+  scene = load_scene(bundled_variant(tmp, "shallow.gltf", [](json& s) { s["images"][0]["uri"] = "shallow.png"; }));
+  CHECK(scene->params[scene->params.find("ground.albedo")].value[1] == srgb_to_linear(128.f / 255.f));
+}
+
+TEST_CASE("broken glTF index accessors are named", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(
+      tmp, {{"count5", [](json& s) { s["accessors"][3]["count"] = 5; },
+             "mesh 'ground' primitive 0: indices (accessor 3): count 5 is not a multiple of 3 (mode TRIANGLES)"},
+            {"vec3",
+             [](json& s) {
+               s["accessors"][3]["type"] = "VEC3";
+               s["accessors"][3]["count"] = 2;
+             },
+             "mesh 'ground' primitive 0: indices (accessor 3): type VEC3 (expected SCALAR)"},
+            {"float", [](json& s) { s["accessors"][3]["componentType"] = 5126; },
+             "indices (accessor 3): component type FLOAT (expected UNSIGNED_BYTE, UNSIGNED_SHORT or UNSIGNED_INT)"},
+            {"unindexed", [](json& s) { s["meshes"][0]["primitives"][0].erase("indices"); },
+             "mesh 'ground' primitive 0: POSITION (accessor 0) without indices: count 4 is not a multiple of 3"}});
+}
+
+TEST_CASE("a glTF accessor without a buffer view reads as zeros", "[gltf]") {
+  TempDir tmp;
+  using nlohmann::json;
+  auto scene =
+      load_scene(bundled_variant(tmp, "zero_uvs.gltf", [](json& s) { s["accessors"][2].erase("bufferView"); }));
+  const Mesh& ground = scene->meshes[0];
+  REQUIRE(ground.uvs.size() == 4);
+  for (const Vec2f& uv : ground.uvs) CHECK((uv.x == 0.f && uv.y == 0.f));
+}
+
+TEST_CASE("glTF nodes scaled to 0 are skipped with one warning per file", "[gltf]") {
+  TempDir tmp;
+  using nlohmann::json;
+  // The plastic box alone, then the parent of both cubes, then the light (an emitter).
+  std::string file = bundled_variant(tmp, "box0.gltf", [](json& s) { s["nodes"][3]["scale"] = {0, 0, 0}; });
+  std::unique_ptr<Scene> scene;
+  CHECK(stderr_of(tmp, [&] { scene = load_scene(file); }) ==
+        "backlight: " + file +
+            ": warning: node 3 ('plastic_box'): its world transform scales to 0 (determinant 0), so its mesh "
+            "'plastic_box' is not rendered\n");
+  REQUIRE(scene);
+  std::vector<std::string> names;
+  for (const Mesh& m : scene->meshes) names.push_back(m.name);
+  CHECK(names == std::vector<std::string>{"ground", "gold_cube", "light"});
+  file = bundled_variant(tmp, "objects0.gltf", [](json& s) { s["nodes"][1]["scale"] = {0, 0, 0}; });
+  scene.reset();
+  CHECK(stderr_of(tmp, [&] { scene = load_scene(file); }) ==
+        "backlight: " + file +
+            ": warning: node 2 ('gold_cube'): its world transform scales to 0 (determinant 0), so its mesh "
+            "'gold_cube' is not rendered (nor are the meshes of 1 more such nodes)\n");
+  REQUIRE(scene);
+  CHECK(scene->meshes.size() == 2);
+  file = bundled_variant(tmp, "light0.gltf", [](json& s) { s["nodes"][4]["scale"] = {0, 0, 0}; });
+  scene.reset();
+  CHECK_THAT(stderr_of(tmp, [&] { scene = load_scene(file); }), Catch::Contains("so its mesh 'light' is not rendered"));
+  REQUIRE(scene);
+  CHECK(scene->area_emitters.empty());
+}
+
+TEST_CASE("malformed optional glTF properties are refused, not defaulted", "[gltf][errors]") {
+  TempDir tmp;
+  using nlohmann::json;
+  check_refused(
+      tmp, {{"byte_offset", [](json& s) { s["accessors"][0]["byteOffset"] = -4; },
+             "accessor 0: byteOffset must be a non-negative integer, not -4"},
+            {"rotation", [](json& s) { s["nodes"][2]["rotation"] = "abc"; },
+             "node 2 ('gold_cube'): rotation must be an array of numbers, not \"abc\""},
+            {"scale_text",
+             [](json& s) {
+               s["nodes"][3]["scale"] = {1, "x", 1};
+             },
+             "node 3 ('plastic_box'): scale must be"},
+            {"scene", [](json& s) { s["scene"] = -1; }, "scene must be a non-negative integer, not -1"},
+            {"texture", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = -2; },
+             "material 0 ('ground'): baseColorTexture: index must be a non-negative integer, not -2"},
+            {"camera", [](json& s) { s["nodes"][5]["camera"] = -1; },
+             "node 5 ('camera'): camera must be a non-negative integer, not -1"},
+            {"mesh", [](json& s) { s["nodes"][0]["mesh"] = -7; }, "node 0 ('ground'): mesh must be"},
+            {"indices", [](json& s) { s["meshes"][0]["primitives"][0]["indices"] = -1; },
+             "mesh 0 ('ground') primitive 0: indices must be a non-negative integer, not -1"},
+            {"emissive",  // the lamp went dark without a word
+             [](json& s) {
+               s["materials"][3]["emissiveFactor"] = {-1, 0, 0};
+             },
+             "material 3 ('lamp'): emissiveFactor values must be ≥ 0, not [-1,0,0]"},
+            {"base_factor",  // with a texture (without one, the parameter's range refused it already)
+             [](json& s) {
+               s["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] = {2, 1, 1, 1};
+             },
+             "material 0 ('ground'): baseColorFactor values must be in [0, 1], not [2,1,1,1]"},
+            {"alpha_mode", [](json& s) { s["materials"][1]["alphaMode"] = "CUTOUT"; },
+             "material 1 ('gold'): alphaMode \"CUTOUT\" is not OPAQUE, MASK or BLEND"},
+            {"alpha_cutoff", [](json& s) { s["materials"][1]["alphaCutoff"] = -1; },
+             "material 1 ('gold'): alphaCutoff must be a number ≥ 0, not -1"}});
 }
