@@ -9,10 +9,12 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <iostream>
 #include <memory>
 #include <optional>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -57,7 +59,8 @@ struct SceneFlags {
   bool quiet = false;
 
   void add_to(CLI::App* app) {
-    app->add_option("scene", scene, "Scene file (.json, or a .gltf/.glb rendered directly)")->required();
+    app->add_option("scene", scene, "Scene file (.json, a .gltf/.glb or a Mitsuba 3 .xml, rendered directly)")
+        ->required();
     app->add_option("--set", sets, "Override a parameter: NAME=path/to/image.exr or NAME=v1,v2,v3 (repeatable)");
     app->add_option("--resolution", resolution, "Film size WxH (overrides the camera's)");
     app->add_option("--camera", camera, "Camera index (default 0)");
@@ -81,7 +84,7 @@ struct SceneFlags {
       char x = 0, extra = 0;
       if (std::sscanf(resolution.c_str(), "%d%c%d%c", &w, &x, &h, &extra) != 3 || (x != 'x' && x != 'X') || w < 1 ||
           h < 1 || w > 16384 || h > 16384)
-        throw InputError("--resolution '" + resolution + "': expected WxH, e.g. 256x256");
+        throw InputError("--resolution '" + resolution + "': expected WxH, each side in 1..16384, e.g. 256x256");
       for (auto& c : s->cameras) c.width = w, c.height = h;
       for (auto& c : s->cameras) c.update();
     }
@@ -134,7 +137,18 @@ Image read_target(const std::string& path, const Camera& cam, const char* what) 
 
 int cmd_render(SceneFlags& f, const std::string& output) {
   auto limit = thread_limit(f.threads);
-  if (dist::is_root()) check_output_format(output);  // only rank 0 writes
+  if (dist::is_root()) {  // only rank 0 writes
+    // The folder must exist (a mistyped one is an error, not a new folder); temporaries of this
+    // output name that a killed render left there (of a process that no longer runs) are removed.
+    const std::filesystem::path folder = std::filesystem::path(output).parent_path();
+    std::string stem = std::filesystem::path(output).stem().string(), escaped;
+    for (char ch : stem) {
+      if (std::strchr(R"(\^$.|?*+()[]{})", ch)) escaped += '\\';
+      escaped += ch;
+    }
+    check_output_format(output);
+    remove_stale_temporaries(folder.empty() ? "." : folder.string(), false, escaped);
+  }
   auto scene = f.load();
   PassStats stats;
   Image img = render(*scene, f.pass(*scene), &stats);
@@ -281,6 +295,16 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   if (!(c.eps > 0) || !std::isfinite(c.eps)) throw InputError("--eps must be a finite number > 0");
   if (!(c.tolerance >= 0) || !std::isfinite(c.tolerance)) throw InputError("--tolerance must be a finite number ≥ 0");
   if (scene->params.find(c.param) < 0) throw InputError("unknown parameter '" + c.param + "' (see `backlight params`)");
+  if (c.seeds < 1 || c.seeds > 1 << 16) throw InputError("--seeds must be in 1 .. 65536");
+  {  // --eps against the parameter's valid range, before any note (an error is one line)
+    const Param& p = scene->params[scene->params.find(c.param)];
+    if (double(p.upper) - double(p.lower) <= c.eps) {
+      std::ostringstream s;
+      s << "--eps " << c.eps << " is not smaller than the width of the valid range [" << p.lower << ", " << p.upper
+        << "] of '" << c.param << "'";
+      throw InputError(s.str());
+    }
+  }
   if (scene->settings.rr_depth > 0 &&
       (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))
     std::fprintf(stderr,
@@ -294,8 +318,17 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                  "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
                  "on the mean over many seeds (--seeds N), not per seed.\n",
                  c.param.c_str());
-  if (c.seeds < 1 || c.seeds > 1 << 16) throw InputError("--seeds must be in 1 .. 65536");
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed, c.seeds);
+  // Both sides exactly 0 in every direction: the parameter does not reach this image (a camera
+  // that is not rendered, a material no visible path meets). That compares nothing: not a pass.
+  if (std::all_of(rows.begin(), rows.end(),
+                  [](const CheckRow& r) { return r.adjoint == 0.0 && r.finite_difference == 0.0; })) {
+    std::printf(
+        "nothing compared: neither the adjoint nor the renders change with '%s' in %zu direction(s) (it does "
+        "not reach this image)\n",
+        c.param.c_str(), rows.size());
+    return 1;
+  }
   bool ok = true;
   if (c.seeds == 1) {
     std::printf("%-4s %16s %16s %12s\n", "dir", "adjoint", "finite_diff", "rel_error");
@@ -324,7 +357,9 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   double resolvable = 0;
   for (const CheckRow& r : rows)
     resolvable = std::max(resolvable, 4 * r.difference_stderr / std::max(std::abs(r.finite_difference), 1e-30));
-  std::printf("resolution: a relative error of the adjoint above %.0f%% would fail this check%s\n", 100 * resolvable,
+  // A row also passes when its relative error is within --tolerance, so nothing smaller fails.
+  const double caught = std::max(resolvable, c.tolerance);
+  std::printf("resolution: a relative error of the adjoint above %.2g%% would fail this check%s\n", 100 * caught,
               resolvable > 0.25 ? " (more --seeds or --spp to tighten it)" : "");
   return ok ? 0 : 1;
 }
@@ -349,7 +384,7 @@ int main(int argc, char** argv) {
     // A path the user gave (too long, not permitted, a file where a folder was meant).
     return dist::fail(2, e.path1().string().substr(0, 200) + ": " + e.code().message());
   } catch (const std::exception& e) {
-    return dist::fail(1, std::string("internal error: ") + e.what());
+    return dist::fail(3, std::string("internal error: ") + e.what());  // 1 is a failed check
   }
 }
 

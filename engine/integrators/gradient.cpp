@@ -9,6 +9,7 @@
 #include <cmath>
 #include <filesystem>
 #include <random>
+#include <regex>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
@@ -296,6 +297,14 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
         throw InputError("--eps " + std::to_string(eps) + ": θ ± eps·v of '" + name + "' is not finite in float");
       p[i] = std::clamp(p[i], lower, upper), m[i] = std::clamp(m[i], lower, upper);
     }
+    // Every element rounded back to θ (an eps below float resolution at θ): both renders would be
+    // the same and the check would compare 0 with 0, and pass.
+    if (p == m) {
+      std::ostringstream s;
+      s << "--eps " << eps << ": θ ± eps·v of '" << name
+        << "' rounds to θ in float for every element (use a larger --eps)";
+      throw InputError(s.str());
+    }
   }
 
   // Per seed: the adjoint's directional derivatives and the central differences of renders at that
@@ -422,9 +431,17 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
   ensure_output_folder(dir);
   // gradients.json, written last, lists the set: a folder that has it holds a complete one. An
   // earlier run's goes first, so a write failing half-way does not leave it naming a mix of old
-  // and new files.
+  // and new files; so do that run's gradient files (a parameter it differentiated and this one
+  // does not kept its file next to a gradients.json that no longer named it), and the
+  // temporaries of runs killed before their rename.
   std::error_code ec;
   fs::remove(fs::path(dir) / "gradients.json", ec);
+  static const std::regex earlier(R"(^.+\.grad\.(exr|vdb|vol|png)$)");
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code e;
+    if (it->is_regular_file(e) && std::regex_match(it->path().filename().string(), earlier)) fs::remove(it->path(), e);
+  }
+  remove_stale_temporaries(dir, false, R"(image|gradients|.+\.grad)");
   write_image((fs::path(dir) / "image.exr").string(), r.image);
   nlohmann::json j;
   j["method"] = method_name(rq.method);
@@ -463,17 +480,27 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
     double norm = 0;
     for (float g : p.grad) norm += double(g) * double(g);
     nlohmann::json e{{"shape", p.shape}, {"size", p.size()}, {"grad_norm", std::sqrt(norm)}};
-    if (p.size() <= 64) {
-      e["grad"] = p.grad;
-    } else if (p.shape.size() == 4) {
-      write_grid_files(scene, p, p.grad, (fs::path(dir) / (p.name + ".grad")).string(), true);
-      e["file"] = p.name + ".grad.vdb";
-      e["files"] = {p.name + ".grad.vdb", p.name + ".grad.vol", p.name + ".grad.png"};
-    } else {
+    // Up to 64 values inline; grids as .vdb/.vol/.png; images (whatever their size, as
+    // `params --dump` writes them) and larger vectors as EXR: an image [H, W, C] as itself, a
+    // list of vectors [N, C] (a mesh's positions) as an N×1 image of C channels, anything else
+    // as a size×1 single-channel image.
+    if (p.size() <= 64) e["grad"] = p.grad;
+    if (p.shape.size() == 4) {
+      if (p.size() > 64) {
+        write_grid_files(scene, p, p.grad, (fs::path(dir) / (p.name + ".grad")).string(), true);
+        e["file"] = p.name + ".grad.vdb";
+        e["files"] = {p.name + ".grad.vdb", p.name + ".grad.vol", p.name + ".grad.png"};
+      }
+    } else if (p.is_image() || p.size() > 64) {
       std::string file = p.name + ".grad.exr";
-      Image img(p.width(), p.height(), p.channels());
+      Image img;
+      if (p.is_image())
+        img = Image(p.width(), p.height(), p.channels());
+      else if (p.shape.size() == 2 && p.shape[1] >= 1 && p.shape[1] <= 4)
+        img = Image(p.shape[0], 1, p.shape[1]);
+      else
+        img = Image(int(p.size()), 1, 1);
       img.data = p.grad;
-      if (!p.is_image()) img = Image(int(p.size()), 1, 1), img.data = p.grad;
       write_image((fs::path(dir) / file).string(), img);
       e["file"] = file;
     }

@@ -6,11 +6,13 @@
 #include <ImfInputFile.h>
 #include <ImfOutputFile.h>
 #include <png.h>
+#include <signal.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <array>
 #include <bit>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -718,7 +720,7 @@ void check_output_format(const std::string& path) {
   std::string ext = fs::path(path).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
   if (ext != ".exr" && ext != ".hdr" && ext != ".pfm" && ext != ".png" && ext != ".jpg" && ext != ".jpeg")
-    throw file_error(path, "unsupported output format '" + ext + "' (use .exr or .png)");
+    throw file_error(path, "unsupported output format '" + ext + "' (use .exr, .png, .pfm, .hdr or .jpg)");
   fs::path dir = fs::path(path).parent_path();
   std::error_code ec;
   if (!dir.empty() && !fs::is_directory(dir, ec)) {
@@ -787,20 +789,29 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size) 
   commit(tmp, path);
 }
 
-int remove_stale_temporaries(const std::string& dir) {
-  // temp_name's pattern: "." stem ".tmp" PID extension. Only other processes' files go: this
-  // process may be writing its own.
-  static const std::regex pattern(R"(^\..*\.tmp([0-9]+)(\.[A-Za-z0-9]+)?$)");
-  const std::string own = std::to_string(getpid());
+int remove_stale_temporaries(const std::string& dir, bool recursive, const std::string& stem) {
+  // temp_name's pattern: "." stem ".tmp" PID extension. Only files of processes that no longer
+  // run go: this one, or another writing into the same folder, may be writing its own.
+  const std::regex pattern("^\\.(?:" + stem + ")\\.tmp([0-9]+)(\\.[A-Za-z0-9]+)?$");
+  auto dead = [](const std::string& digits) {
+    if (digits.size() > 9) return true;  // beyond any pid
+    const pid_t pid = pid_t(std::stol(digits));
+    return pid > 0 && kill(pid, 0) != 0 && errno == ESRCH;
+  };
   int removed = 0;
   std::error_code ec;
-  for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
-    if (!it->is_regular_file(ec)) continue;
+  auto consider = [&](const fs::directory_entry& entry) {
+    std::error_code e;
+    if (!entry.is_regular_file(e)) return;
     std::smatch m;
-    const std::string name = it->path().filename().string();
-    if (!std::regex_match(name, m, pattern) || m[1].str() == own) continue;
-    std::error_code rm;
-    if (fs::remove(it->path(), rm)) ++removed;
+    const std::string name = entry.path().filename().string();
+    if (!std::regex_match(name, m, pattern) || !dead(m[1].str())) return;
+    if (fs::remove(entry.path(), e)) ++removed;
+  };
+  if (recursive) {
+    for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) consider(*it);
+  } else {
+    for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) consider(*it);
   }
   return removed;
 }

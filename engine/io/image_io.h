@@ -47,9 +47,11 @@ void write_image(const std::string& path, const Image& image);
 void write_text_atomic(const std::string& path, const std::string& text);
 // The same for raw bytes, written straight from `data` (no copy).
 void write_bytes_atomic(const std::string& path, const void* data, size_t size);
-// Deletes, under `dir` (recursively), the temporaries that write_image/write_text_atomic of
-// another process left behind when it was killed before its rename. Returns how many.
-int remove_stale_temporaries(const std::string& dir);
+// Deletes, under `dir` (recursively, or only in `dir` itself), the temporaries that
+// write_image/write_text_atomic of another process left behind when it was killed before its
+// rename: names ".<stem>.tmp<pid>.<ext>" whose stem matches `stem` (a regular expression) and
+// whose process no longer runs. Returns how many.
+int remove_stale_temporaries(const std::string& dir, bool recursive = true, const std::string& stem = ".*");
 
 float srgb_to_linear(float v);
 float linear_to_srgb(float v);

@@ -817,7 +817,7 @@ class UniqueNames {
 
 std::string sanitize(std::string name) {
   for (auto& c : name)
-    if (c == '.' || c == ' ' || c == '=') c = '_';
+    if (c == '.' || c == ' ' || c == '=' || c == '/' || c == '\\') c = '_';  // names become file names
   return name;
 }
 

@@ -823,7 +823,8 @@ for name, e in params.items():
     assert e["size"] == math.prod(e["shape"]), (name, e)
     assert math.isfinite(e["grad_norm"]) and e["grad_norm"] >= 0, (name, e)
     if e["size"] <= 64:
-        assert "file" not in e and len(e["grad"]) == e["size"], (name, e)
+        assert len(e["grad"]) == e["size"], (name, e)
+        assert ("file" in e) == (len(e["shape"]) == 3), (name, e)  # images also as EXR
         norm = math.sqrt(sum(g * g for g in e["grad"]))
         assert abs(norm - e["grad_norm"]) <= 1e-5 * norm + 1e-30, (name, norm, e["grad_norm"])
     else:
@@ -901,6 +902,62 @@ PY
     -o o.exr --spp 1 -q
 }
 in_background good_grid_files
+
+# Names become file names: a material named with a '/' (or an absolute path) wrote its gradient
+# outside --out.
+scene_variant "$small" "$tmp/small/slash.json" 's["materials"]["a/b"] = s["materials"].pop("white")'
+expect_error name_with_slash "parameter name 'a/b.albedo'" "they become file names" -- params "$tmp/small/slash.json" -q
+# check: an --eps whose steps round back to θ compared 0 with 0 and passed; so did a parameter that
+# does not reach the image (a camera that is not rendered): "nothing compared", exit 1. Its
+# errors are one line even when a note would precede the run.
+expect_error check_eps_rounds "rounds to θ in float" -- \
+  check "$small" --spp 1 --target t16.exr --param white.albedo --eps 1e-9 --rr-depth 0
+expect_error check_eps_range_before_notes "--eps 4 is not smaller than the width" -- \
+  check "$small" --spp 1 --target t16.exr --param metal.roughness --eps 4
+check_nothing_compared() {
+  local pose="$repo/scenes/pose/scene.json" rc=0
+  "$bin" render "$pose" -o tpose.exr --spp 1 --resolution 16x16 -q 2>/dev/null || { fail "check_nothing_compared: render"; return; }
+  "$bin" check "$pose" --resolution 16x16 --spp 1 --rr-depth 0 --target tpose.exr --param left.origin \
+    >out.nothing 2>/dev/null || rc=$?
+  [ "$rc" -eq 1 ] || fail "check of a camera that is not rendered: exit $rc, expected 1: $(cat out.nothing)"
+  grep -q "^nothing compared: neither the adjoint nor the renders change with 'left.origin'" out.nothing ||
+    fail "check of a camera that is not rendered printed: $(cat out.nothing)"
+}
+in_background check_nothing_compared
+# grad --out: an earlier run's gradient files that this run does not write, and temporaries of
+# killed runs (pid no longer running), are removed; other files and live temporaries stay.
+grad_cleans_its_folder() {
+  expect_ok grad_clean_first grad "$small" --spp 1 --target t16.exr --out g_clean -q --param wall.albedo || return
+  touch g_clean/.image.tmp999999.exr g_clean/.wall.albedo.grad.tmp999999.exr g_clean/keep.txt \
+    "g_clean/.image.tmp$$.exr"
+  expect_ok grad_clean_second grad "$small" --spp 1 --target t16.exr --out g_clean -q --param light.radiance || return
+  for f in wall.albedo.grad.exr .image.tmp999999.exr .wall.albedo.grad.tmp999999.exr; do
+    [ ! -e "g_clean/$f" ] || fail "grad left g_clean/$f"
+  done
+  for f in keep.txt ".image.tmp$$.exr" gradients.json image.exr; do
+    [ -e "g_clean/$f" ] || fail "grad removed or did not write g_clean/$f"
+  done
+}
+in_background grad_cleans_its_folder
+# A list of vectors [N, 3] (a mesh's positions) is an N×1 RGB gradient image; it was a 3N×1
+# single-channel one.
+grad_positions_layout() {
+  local pose="$repo/scenes/pose/scene.json"
+  "$bin" render "$pose" -o tpose16.exr --spp 1 --resolution 16x16 -q 2>/dev/null || { fail "grad_positions: render"; return; }
+  expect_ok grad_positions grad "$pose" --resolution 16x16 --spp 1 --target tpose16.exr --param box.positions \
+    --out g_positions -q || return
+  [ "$(image_size g_positions/box.positions.grad.exr)" = 24x1 ] ||
+    fail "box.positions.grad.exr is $(image_size g_positions/box.positions.grad.exr), expected 24x1 (24 vertices)"
+}
+in_background grad_positions_layout
+# render -o: temporaries of its output name left by a killed render (pid no longer running) go.
+render_cleans_temporaries() {
+  touch .r_clean.tmp999999.png .r_clean_other.tmp999999.png
+  expect_ok render_clean render "$small" -o r_clean.png --spp 1 -q || return
+  [ ! -e .r_clean.tmp999999.png ] || fail "render left its stale temporary .r_clean.tmp999999.png"
+  [ -e .r_clean_other.tmp999999.png ] || fail "render removed another name's temporary"
+}
+in_background render_cleans_temporaries
 
 # check: a table, exit 0.
 good_check() {
