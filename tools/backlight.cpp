@@ -192,11 +192,13 @@ struct GradFlags {
   bool replay_whole_paths = false;
   void add_to(CLI::App* app) {
     app->add_option("--target", target, "Target image the loss compares the render with");
-    app->add_option("--adjoint-image", adjoint_image,
-                    "Back-propagate this image-space gradient dI instead of a loss (gradient of sum(dI * I))");
+    auto* adjoint =
+        app->add_option("--adjoint-image", adjoint_image,
+                        "Back-propagate this image-space gradient dI instead of a loss (gradient of sum(dI * I))");
     app->add_option("--out", out, "Output directory")->required();
     app->add_option("--method", method, "prb (path replay, default), rb (radiative backpropagation) or taped");
-    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
+    // An adjoint image is its own functional: a --loss with it was ignored without a word.
+    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)")
         ->check(kSeed);
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
@@ -215,14 +217,15 @@ struct CheckFlags {
   uint64_t direction_seed = 1;
   void add_to(CLI::App* app) {
     app->add_option("--target", target, "Target image of the loss");
-    app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
+    auto* adjoint =
+        app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
     app->add_option("--param", param, "Parameter to check")->required();
     app->add_option("--directions", directions, "Number of random directions (default 4)");
     app->add_option("--eps", eps,
                     "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (default 1e-2)");
     app->add_option("--tolerance", tolerance, "Largest accepted relative error; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
-    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2");
+    app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->check(kSeed);
     app->add_option("--seeds", seeds,
                     "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| < 4 of their "

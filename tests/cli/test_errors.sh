@@ -907,6 +907,11 @@ in_background good_grid_files
 # outside --out.
 scene_variant "$small" "$tmp/small/slash.json" 's["materials"]["a/b"] = s["materials"].pop("white")'
 expect_error name_with_slash "parameter name 'a/b.albedo'" "they become file names" -- params "$tmp/small/slash.json" -q
+# An adjoint image is its own functional: a --loss next to it was ignored without a word.
+expect_error grad_loss_with_adjoint "--adjoint-image excludes --loss" -- \
+  grad "$small" --spp 1 --adjoint-image t16.exr --loss l1 --out g_loss_adjoint -q
+expect_error check_loss_with_adjoint "--adjoint-image excludes --loss" -- \
+  check "$small" --spp 1 --adjoint-image t16.exr --loss l1 --param light.radiance -q
 # check: an --eps whose steps round back to θ compared 0 with 0 and passed; so did a parameter that
 # does not reach the image (a camera that is not rendered): "nothing compared", exit 1. Its
 # errors are one line even when a note would precede the run.
