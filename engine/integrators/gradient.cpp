@@ -19,6 +19,7 @@
 #include "engine/integrators/boundary.h"
 #include "engine/integrators/interior.h"
 #include "engine/integrators/taped.h"
+#include "engine/io/progress.h"
 
 namespace bl {
 
@@ -310,6 +311,9 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
   // Per seed: the adjoint's directional derivatives and the central differences of renders at that
   // seed (common random numbers), paired.
   std::vector<std::vector<double>> adjoint(count), fd(count);
+  // One bar over the whole check (per seed: one gradient pass and two renders per direction),
+  // instead of a bar per pass.
+  Progress progress("check", uint64_t(seeds) * (1 + 2 * count), "passes", rq.pass.progress);
   for (int k = 0; k < seeds; ++k) {
     GradientRequest quiet = rq;
     quiet.pass.progress = false;
@@ -317,10 +321,12 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     quiet.adjoint_seed = rq.adjoint_seed + uint64_t(k);
     set_values(theta);
     compute_gradient(scene, quiet);
+    progress.advance(1);
     const std::vector<float> gradient = scene.params[h].grad;
     auto loss_at = [&](const std::vector<float>& v) {
       set_values(v);
       Image img = render(scene, quiet.pass);
+      progress.advance(1);
       return rq.adjoint_image ? functional(*rq.adjoint_image, img) : compute_loss(rq.loss, img, *rq.target).value;
     };
     for (int d = 0; d < directions; ++d) {

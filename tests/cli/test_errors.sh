@@ -971,6 +971,9 @@ good_check() {
   [ "$(grep -cE '^[0-9]+ +-?[0-9.]+e[-+][0-9]+ +-?[0-9.]+e[-+][0-9]+ +[0-9.]+e[-+][0-9]+$' out.check)" -eq 4 ] ||
     fail "check: expected 4 table rows: $(cat out.check)"
   grep -q '^ok: 4 direction' out.check || fail "check: no ok line: $(cat out.check)"
+  # One progress bar over the check's passes (1 gradient + 2 renders per direction), ending with
+  # its elapsed time; there was none.
+  grep -qE '^check \[=+\] +100\.0% .* elapsed' err.check || fail "check: no progress line: $(cat err.check)"
 }
 in_background good_check
 
