@@ -165,6 +165,7 @@ int cmd_render(SceneFlags& f, const std::string& output) {
 }
 
 int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
+  auto limit = thread_limit(f.threads);                             // --threads is checked here too (-5 was accepted)
   if (!dump.empty() && dist::is_root()) check_output_folder(dump);  // before printing anything
   auto scene = f.load();
   const auto& params = scene->params;

@@ -907,6 +907,8 @@ in_background good_grid_files
 # outside --out.
 scene_variant "$small" "$tmp/small/slash.json" 's["materials"]["a/b"] = s["materials"].pop("white")'
 expect_error name_with_slash "parameter name 'a/b.albedo'" "they become file names" -- params "$tmp/small/slash.json" -q
+# params took --threads -5 without a word (it never applied the thread limit).
+expect_error params_threads_negative "--threads" -- params "$small" --threads -5 -q
 # An adjoint image is its own functional: a --loss next to it was ignored without a word.
 expect_error grad_loss_with_adjoint "--adjoint-image excludes --loss" -- \
   grad "$small" --spp 1 --adjoint-image t16.exr --loss l1 --out g_loss_adjoint -q
