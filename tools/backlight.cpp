@@ -14,7 +14,6 @@
 #include <iostream>
 #include <memory>
 #include <optional>
-#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -300,15 +299,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   if (!(c.tolerance >= 0) || !std::isfinite(c.tolerance)) throw InputError("--tolerance must be a finite number ≥ 0");
   if (scene->params.find(c.param) < 0) throw InputError("unknown parameter '" + c.param + "' (see `backlight params`)");
   if (c.seeds < 1 || c.seeds > 1 << 16) throw InputError("--seeds must be in 1 .. 65536");
-  {  // --eps against the parameter's valid range, before any note (an error is one line)
-    const Param& p = scene->params[scene->params.find(c.param)];
-    if (double(p.upper) - double(p.lower) <= c.eps) {
-      std::ostringstream s;
-      s << "--eps " << c.eps << " is not smaller than the width of the valid range [" << p.lower << ", " << p.upper
-        << "] of '" << c.param << "'";
-      throw InputError(s.str());
-    }
-  }
+  check_eps_range(scene->params[scene->params.find(c.param)], c.eps);  // before any note: one error line
   if (scene->settings.rr_depth > 0 &&
       (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))
     std::fprintf(stderr,

@@ -254,6 +254,14 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
   return result;
 }
 
+void check_eps_range(const Param& p, double eps) {
+  if (double(p.upper) - double(p.lower) > eps) return;
+  std::ostringstream s;
+  s << "--eps " << eps << " is not smaller than the width of the valid range [" << p.lower << ", " << p.upper
+    << "] of '" << p.name << "'";
+  throw InputError(s.str());
+}
+
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
                                         int directions, double eps, uint64_t direction_seed, int seeds) {
   int h = scene.params.find(name);
@@ -275,12 +283,7 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
   // The directions and their steps first. Steps are clamped into the valid range (a black texel
   // steps only upwards; the adjoint side predicts the change of the steps actually taken, below);
   // an eps as wide as the range itself is a mistake (|g| > 1, albedos of 1e30).
-  if (double(upper) - double(lower) <= eps) {
-    std::ostringstream s;
-    s << "--eps " << eps << " is not smaller than the width of the valid range [" << lower << ", " << upper << "] of '"
-      << name << "'";
-    throw InputError(s.str());
-  }
+  check_eps_range(scene.params[h], eps);
   std::mt19937_64 rng(direction_seed);
   std::normal_distribution<double> normal;
   const size_t count = static_cast<size_t>(directions);

@@ -77,6 +77,9 @@ struct CheckRow {
 // the expectation (CheckRow::z).
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
                                         int directions, double eps, uint64_t direction_seed, int seeds = 1);
+// The check's refusal of an eps not smaller than the width of parameter `p`'s valid range, for
+// callers that validate before they print (directional_check makes it too).
+void check_eps_range(const Param& p, double eps);
 
 // Output helpers (atomic writes).
 void write_gradient_outputs(const Scene& scene, const GradientRequest& request, const GradientResult& result,

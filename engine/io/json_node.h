@@ -87,11 +87,7 @@ class Node {
   }
   // A whole number in [lo, hi]; 2.5 is an error, not 2.
   long integer(const std::string& key, long fallback, long lo, long hi) {
-    const json* v = find(key);
-    if (!v) return fallback;
-    double d = checked_number(*v, key, double(lo), double(hi));
-    if (d != std::floor(d)) fail_at(key, "expected a whole number");
-    return long(d);
+    return find(key) ? integer_required(key, lo, hi) : fallback;
   }
   long integer_required(const std::string& key, long lo, long hi) {
     double d = checked_number(at(key), key, double(lo), double(hi));
