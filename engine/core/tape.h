@@ -136,18 +136,28 @@ inline Var pow(const Var& a, float e) { return record(std::pow(a.v, e), a, e * s
 
 // Reverse sweep: propagates the adjoints in `adjoint` (one per entry, seeded at the outputs) from
 // the last entry to the first, and calls leaf(flat_parameter_index, adjoint · weight) per leaf.
-template <class LeafFn>
-void reverse_sweep(const Tape& tape, std::vector<float>& adjoint, LeafFn&& leaf) {
-  for (size_t i = tape.size(); i-- > 0;) {
-    const float g = adjoint[i];
-    if (g == 0.f) continue;
-    const TapeEntry& e = tape[i];
-    if (e.a == Tape::kLeaf) {
-      leaf(e.b, g * e.da);
-      continue;
+// done(n) hears of every n entries swept (in blocks of 2^20, for a progress bar).
+struct NoSweepProgress {
+  void operator()(size_t) const {}
+};
+template <class LeafFn, class Done = NoSweepProgress>
+void reverse_sweep(const Tape& tape, std::vector<float>& adjoint, LeafFn&& leaf, Done&& done = {}) {
+  constexpr size_t kBlock = size_t(1) << 20;
+  for (size_t end = tape.size(); end > 0;) {
+    const size_t begin = end > kBlock ? end - kBlock : 0;
+    for (size_t i = end; i-- > begin;) {
+      const float g = adjoint[i];
+      if (g == 0.f) continue;
+      const TapeEntry& e = tape[i];
+      if (e.a == Tape::kLeaf) {
+        leaf(e.b, g * e.da);
+        continue;
+      }
+      if (e.a != Tape::kNone) adjoint[e.a] += g * e.da;
+      if (e.b != Tape::kNone) adjoint[e.b] += g * e.db;
     }
-    if (e.a != Tape::kNone) adjoint[e.a] += g * e.da;
-    if (e.b != Tape::kNone) adjoint[e.b] += g * e.db;
+    done(end - begin);
+    end = begin;
   }
 }
 

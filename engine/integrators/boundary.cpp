@@ -12,6 +12,8 @@
 #include "engine/core/errors.h"
 #include "engine/integrators/edges.h"
 #include "engine/integrators/path.h"
+#include "engine/integrators/render.h"
+#include "engine/io/progress.h"
 
 namespace bl {
 
@@ -153,9 +155,16 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
   // dimensions 0 and 1 (the camera's in a render) pick the edge and the point on it.
   constexpr uint64_t kEdgeStream = 0xed9e5a3b1c00ull;
   const double weight_scale = total / double(n);
+  Progress progress("boundary", n, "samples", options.progress);
   tbb::parallel_for(tbb::blocked_range<uint64_t>(0, n, 256), [&](const tbb::blocked_range<uint64_t>& range) {
+    if (cancelled(options.cancel)) return;
     Accumulator& acc = per_thread.local();
     NoObserver none;
+    struct Advance {  // counts the range however the loop leaves it (its `continue`s)
+      Progress& progress;
+      uint64_t n;
+      ~Advance() { progress.advance(n); }
+    } advance{progress, range.size()};
     for (uint64_t k = range.begin(); k != range.end(); ++k) {
       const PathSampler sampler(options.seed, k, kEdgeStream);
       const double u = double(sampler.get(Dim::kPixelX)) * total;
@@ -188,6 +197,7 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
       add_to_edge(table, e, ga, gb, acc[size_t(slot[size_t(e.mesh)])]);
     }
   });
+  progress.finish();
   reduce_into(per_thread, result);
   return result;
 }

@@ -33,6 +33,7 @@
 //
 // The interior and secondary-visibility terms are in interior.h. This is exact for what it covers:
 // e.g. a shape emitting constant radiance seen directly.
+#include <atomic>
 #include <cstdint>
 #include <vector>
 
@@ -67,6 +68,9 @@ struct BoundaryOptions {
   uint64_t seed = 0;
   std::vector<int> meshes;    // meshes whose vertices get gradients (empty: all)
   float side_offset = 1e-3f;  // ε in pixels
+  bool progress = false;      // a progress bar on stderr ("boundary", edge samples)
+  // Stops the pass early when set (PassOptions::cancel); the result is then partial: discard it.
+  const std::atomic<bool>* cancel = nullptr;
 };
 
 // Primary-visibility boundary term of dF/d(vertex positions) for F = Σ_p ⟨adjoint_p, I_p⟩

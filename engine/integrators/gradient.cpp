@@ -146,6 +146,8 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
   bo.samples = uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(spp);
   bo.seed = rq.adjoint_seed;
   bo.meshes = meshes;
+  bo.progress = rq.pass.progress;
+  bo.cancel = rq.pass.cancel;
   PathGeometryOptions po;
   po.camera = camera;
   po.spp = spp;
@@ -154,6 +156,8 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
   po.camera_moves = camera_moves;
   po.edge_samples = rq.edge_samples;
   po.taped = rq.method == GradientMethod::Taped;  // the oracle's pull-back, on the same paths
+  po.progress = rq.pass.progress;
+  po.cancel = rq.pass.cancel;
   GeometryGradient g = meshes.empty() ? GeometryGradient{} : primary_boundary_gradient(scene, adjoint, bo);
   GeometryGradient paths = path_geometry_gradient(scene, adjoint, po);
   if (meshes.empty()) {

@@ -13,6 +13,8 @@
 #include "engine/core/tape.h"
 #include "engine/integrators/edges.h"
 #include "engine/integrators/path.h"
+#include "engine/integrators/render.h"
+#include "engine/io/progress.h"
 
 namespace bl {
 
@@ -650,7 +652,10 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
   es.moving_tree = &moving_tree;
   es.all_tree = &all_tree;
   tbb::enumerable_thread_specific<TapedScratch> taped_scratch;  // options.taped only
+  Progress progress("geometry", uint64_t(cam.width) * uint64_t(cam.height) * uint64_t(options.spp), "paths",
+                    options.progress);
   tbb::parallel_for(tbb::blocked_range<int>(0, cam.height), [&](const tbb::blocked_range<int>& rows) {
+    if (cancelled(options.cancel)) return;
     Accumulator& acc = per_thread.local();
     std::vector<PathVertex> path;
     std::vector<MovingHit<double>> hits;
@@ -660,7 +665,8 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
     VertexRecorder recorder;
     recorder.scene = &scene;
     recorder.path = &path;
-    for (int py = rows.begin(); py != rows.end(); ++py)
+    for (int py = rows.begin(); py != rows.end(); ++py) {
+      if (cancelled(options.cancel)) return;
       for (int px = 0; px < cam.width; ++px) {
         const Vec3d a = Vec3d(adjoint.at(px, py, 0), adjoint.at(px, py, 1), adjoint.at(px, py, 2)) * inv_spp;
         if (a.x == 0 && a.y == 0 && a.z == 0) continue;
@@ -698,7 +704,10 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
                           acc);
         }
       }
+      progress.advance(uint64_t(cam.width) * uint64_t(options.spp));
+    }
   });
+  progress.finish();
 
   std::vector<double> log_area(scene.area_emitters.size(), 0.0);
   for (const Accumulator& acc : per_thread) {

@@ -47,6 +47,9 @@ struct PathGeometryOptions {
   // log-factor templates and of the hits as functions of the previous hit) instead of the
   // closed-form pull-back; the same paths and edge samples, so the same gradient to float precision.
   bool taped = false;
+  bool progress = false;  // a progress bar on stderr ("geometry", camera paths)
+  // Stops the pass early when set (PassOptions::cancel); the result is then partial: discard it.
+  const std::atomic<bool>* cancel = nullptr;
 };
 
 // Interior and secondary-visibility terms of dF/d(vertex positions, vertex normals, camera origin

@@ -159,6 +159,8 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   GradientSink sink(store);
   std::vector<Tape*> all_tapes;
   for (auto& t : tapes) all_tapes.push_back(&t);
+  Progress sweep("taped sweep", entries.load(), "entries", rq.pass.progress);
+  sweep.set_ranks(dist::size());
   tbb::parallel_for_each(all_tapes.begin(), all_tapes.end(), [&](Tape* tape) {
     std::vector<float> adj(tape->size(), 0.f);
     for (size_t p = 0; p < pixels; ++p)
@@ -166,11 +168,15 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
         for (int c = 0; c < 3; ++c)
           if (outputs[p].index[c] != Tape::kNone) adj[outputs[p].index[c]] += adjoint.data[p * 3 + size_t(c)];
     GradientAccumulator& grads = sink.local();
-    reverse_sweep(*tape, adj, [&](uint32_t flat, float g) {
-      size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(flat)) - offsets.begin()) - 1;
-      grads.add(int(handle), size_t(flat) - offsets[handle], g);
-    });
+    reverse_sweep(
+        *tape, adj,
+        [&](uint32_t flat, float g) {
+          size_t handle = size_t(std::upper_bound(offsets.begin(), offsets.end(), size_t(flat)) - offsets.begin()) - 1;
+          grads.add(int(handle), size_t(flat) - offsets[handle], g);
+        },
+        [&](size_t n) { sweep.advance(n); });
   });
+  sweep.finish();
   sink.reduce();
   result.adjoint_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   result.tape_entries = entries.load();

@@ -979,6 +979,23 @@ good_check() {
 }
 in_background good_check
 
+# Every pass of a gradient shows its progress: the geometry passes (primary boundary, paths) and
+# the taped mode's reverse sweep ran for seconds after the last bar without a line.
+pass_progress() {
+  expect_ok grad_geometry_progress grad "$pose" --adjoint-image "$pose_ones" --param box.translate --spp 1 \
+    --out g_progress || return
+  for bar in prb boundary geometry; do
+    grep -qE "^$bar \[=+\] +100\.0% .* elapsed" err.grad_geometry_progress ||
+      fail "grad: no '$bar' progress line: $(cat err.grad_geometry_progress)"
+  done
+  expect_ok grad_taped_progress grad "$small" --target t16.exr --method taped --spp 1 --out g_progress_taped || return
+  for bar in "taped record" "taped sweep"; do
+    grep -qE "^$bar \[=+\] +100\.0% .* elapsed" err.grad_taped_progress ||
+      fail "grad: no '$bar' progress line: $(cat err.grad_taped_progress)"
+  done
+}
+in_background pass_progress
+
 wait
 # Error cases write nothing.
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
