@@ -275,6 +275,14 @@ int cmd_grad(SceneFlags& f, const GradFlags& g) {
   if (g.adjoint_seed) rq.adjoint_seed = *g.adjoint_seed;
   if (!g.memory_budget.empty()) rq.memory_budget = parse_memory_size(g.memory_budget);
   rq.pass.replay_whole_paths = g.replay_whole_paths;
+  // Flags of one method given to another were ignored without a word. Scripts that run every
+  // method with the same flags (bench/memory_speed, bench/volume) keep working: a warning.
+  if (dist::is_root() && !g.memory_budget.empty() && rq.method != GradientMethod::Taped)
+    std::fprintf(stderr, "warning: --memory-budget limits the taped mode's tape; --method %s keeps none (ignored)\n",
+                 method_name(rq.method));
+  if (dist::is_root() && g.replay_whole_paths && rq.method == GradientMethod::Taped)
+    std::fprintf(stderr,
+                 "warning: --replay-whole-paths applies to --method prb and rb; taped replays nothing (ignored)\n");
   scene->params.require_grad(g.params);
   GradientResult r = compute_gradient(*scene, rq);
   const double mpi_seconds = dist::mpi_seconds();

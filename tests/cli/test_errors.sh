@@ -996,6 +996,21 @@ pass_progress() {
 }
 in_background pass_progress
 
+# A flag of one method given to another was ignored without a word: a one-line warning now.
+ignored_method_flags() {
+  expect_ok grad_budget_prb grad "$small" --target t16.exr --spp 1 --memory-budget 1GB --out g_budget_prb -q || return
+  grep -q "^warning: --memory-budget .*--method prb .*(ignored)$" err.grad_budget_prb ||
+    fail "grad: no warning for --memory-budget with prb: $(cat err.grad_budget_prb)"
+  expect_ok grad_whole_taped grad "$small" --target t16.exr --spp 1 --method taped --replay-whole-paths \
+    --out g_whole_taped -q || return
+  grep -q "^warning: --replay-whole-paths .*taped .*(ignored)$" err.grad_whole_taped ||
+    fail "grad: no warning for --replay-whole-paths with taped: $(cat err.grad_whole_taped)"
+  expect_ok grad_budget_taped grad "$small" --target t16.exr --spp 1 --method taped --memory-budget 1GB \
+    --out g_budget_taped -q || return
+  ! grep -q "warning" err.grad_budget_taped || fail "grad: a warning for taped's own flag: $(cat err.grad_budget_taped)"
+}
+in_background ignored_method_flags
+
 wait
 # Error cases write nothing.
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
