@@ -452,6 +452,14 @@ int run(int argc, char** argv) {
     return app.exit(e);
   } catch (const CLI::CallForAllHelp& e) {
     return app.exit(e);
+  } catch (const CLI::ArgumentMismatch& e) {
+    // CLI11 says "--spp: At Most 1 required but received 2" for a flag given twice.
+    const std::string what = e.what(), marker = ": At Most 1 required but received ";
+    const size_t at = what.find(marker);
+    if (at != std::string::npos)
+      throw InputError(what.substr(0, at) + " is given " + what.substr(at + marker.size()) +
+                       " times; give it once (see --help)");
+    throw InputError(what + " (see --help)");
   } catch (const CLI::ParseError& e) {
     throw InputError(std::string(e.what()) + " (see --help)");
   }

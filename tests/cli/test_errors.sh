@@ -463,6 +463,7 @@ expect_error max_depth_zero "--max-depth" -- render "$small" -o o.exr --max-dept
 expect_error rr_depth_negative "--rr-depth" -- render "$small" -o o.exr --rr-depth -1
 expect_error threads_negative "--threads" -- render "$small" -o o.exr --threads -1
 expect_error unknown_flag "--bogus" -- render "$small" -o o.exr --bogus
+expect_error flag_twice "--spp is given 2 times" "give it once" -- render "$small" -o o.exr --spp 1 --spp 2
 expect_error optimize_missing_config "nope.json" "not found" -- optimize nope.json
 expect_error no_subcommand "subcommand" --
 expect_error unknown_subcommand "frobnicate" -- frobnicate
