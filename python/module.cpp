@@ -487,6 +487,68 @@ py::tuple grad_py(PyScene& s, const py::handle& target, const std::string& loss,
   return py::make_tuple(r.loss, gradients_of(*s.scene), image_array(std::move(r.image)));
 }
 
+double real_arg(const py::object& v, const std::string& name) {
+  if (py::isinstance<py::bool_>(v) || !(py::isinstance<py::float_>(v) || py::isinstance<py::int_>(v) ||
+                                        PyIndex_Check(v.ptr()) || py::hasattr(v, "__float__")))
+    throw InputError(name + ": expected a number, got " + type_name(v) + " " + repr_of(v));
+  const double x = PyFloat_AsDouble(v.ptr());
+  if (PyErr_Occurred()) {
+    PyErr_Clear();
+    throw InputError(name + ": expected a number, got " + type_name(v) + " " + repr_of(v));
+  }
+  return x;
+}
+
+// The CLI's `backlight check` (tools/backlight.cpp): directional derivatives of the adjoint against
+// central finite differences of the primal at the same seeds, one dict per direction.
+py::list check_py(PyScene& s, const std::string& param, const py::object& target, const py::object& d_image,
+                  const std::string& loss, const std::string& method, int directions, double eps, double tolerance,
+                  uint64_t direction_seed, int seeds, const PassArgs& a, std::optional<uint64_t> adjoint_seed) {
+  if (target.is_none() == d_image.is_none()) throw InputError("give exactly one of target and d_image");
+  if (s.scene->params.find(param) < 0) throw InputError("param: unknown parameter '" + param + "' (see scene.params)");
+  limits::require_at_most("directions", "direction count", uint64_t(directions), limits::kCheckDirections);
+  if (!(eps > 0) || !std::isfinite(eps)) throw InputError("eps: expected a finite number > 0");
+  if (!(tolerance >= 0) || !std::isfinite(tolerance)) throw InputError("tolerance: expected a finite number ≥ 0");
+  const auto lock = lock_for_pass(s);
+  refresh(s);
+  CameraScope scope(*s.scene, a);
+  const Camera& cam = scope.camera();
+  auto arr = checked_array(target.is_none() ? d_image : target, {cam.height, cam.width, 3},
+                           target.is_none() ? "d_image" : "target");
+  Image img(cam.width, cam.height, 3);
+  std::copy(arr.data(), arr.data() + arr.size(), img.data.begin());
+  GradientRequest rq;
+  rq.method = parse_method(method);
+  if (!target.is_none()) {
+    rq.loss = parse_loss(loss);
+    rq.target = &img;
+  } else {
+    rq.adjoint_image = &img;
+  }
+  rq.pass = pass_options(*s.scene, a);
+  rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
+  std::vector<CheckRow> rows;
+  interruptible([&](const std::atomic<bool>* cancel) {
+    rq.pass.cancel = cancel;
+    rows = directional_check(*s.scene, param, rq, directions, eps, direction_seed, seeds);
+  });
+  py::list out;
+  for (const CheckRow& r : rows) {
+    // The CLI's verdict: within the tolerance, or (over several seeds) |z| < 4.
+    const bool ok = r.relative_error <= tolerance || (seeds > 1 && std::abs(r.z) < 4);
+    py::dict d;
+    d["adjoint"] = r.adjoint;
+    d["finite_difference"] = r.finite_difference;
+    d["relative_error"] = r.relative_error;
+    d["adjoint_stderr"] = r.adjoint_stderr;
+    d["fd_stderr"] = r.fd_stderr;
+    d["z"] = r.z;
+    d["ok"] = ok;
+    out.append(d);
+  }
+  return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_backlight, m) {
@@ -597,4 +659,29 @@ PYBIND11_MODULE(_backlight, m) {
       py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(),
       py::arg("camera") = 0, py::arg("resolution") = py::none(), py::arg("params") = py::none(),
       "Loss of the render against target (l2, l1 or rel_l2) and its gradient: (loss, {name: gradient}, image).");
+  m.def(
+      "check",
+      [](PyScene& s, const py::object& param, const py::object& target, const py::object& d_image,
+         const py::object& loss, const py::object& method, const py::object& directions, const py::object& eps,
+         const py::object& tolerance, const py::object& direction_seed, const py::object& seeds, const py::object& spp,
+         const py::object& seed, const py::object& adjoint_seed, const py::object& camera,
+         const py::object& resolution) {
+        return check_py(s, str_arg(param, "param"), target, d_image, str_arg(loss, "loss"), str_arg(method, "method"),
+                        *int_arg(directions, "directions", 1, INT32_MAX), real_arg(eps, "eps"),
+                        real_arg(tolerance, "tolerance"), *seed_arg(direction_seed, "direction_seed"),
+                        *int_arg(seeds, "seeds", 1, 1 << 16), pass_args(spp, seed, camera, resolution),
+                        seed_arg(adjoint_seed, "adjoint_seed"));
+      },
+      py::arg("scene"), py::arg("param"), py::kw_only(), py::arg("target") = py::none(),
+      py::arg("d_image") = py::none(), py::arg("loss") = "l2", py::arg("method") = "prb", py::arg("directions") = 4,
+      py::arg("eps") = 1e-2, py::arg("tolerance") = 1e-2, py::arg("direction_seed") = 1, py::arg("seeds") = 1,
+      py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(),
+      py::arg("camera") = 0, py::arg("resolution") = py::none(),
+      "The CLI's `backlight check`: for `directions` random directions v (i.i.d. standard normal, seeded by "
+      "direction_seed), the adjoint's directional derivative <grad, v> against the central finite difference "
+      "(loss(theta + eps v) - loss(theta - eps v)) / 2 eps of renders at the same seed; the loss against target "
+      "(loss=l2, l1 or rel_l2), or sum(d_image * I) with d_image. seeds > 1 averages both over seeds seed, seed+1, "
+      "... (for parameters sampling depends on, and geometry). Returns one dict per direction: adjoint, "
+      "finite_difference, relative_error, adjoint_stderr, fd_stderr, z (NaN for one seed) and ok (relative_error "
+      "<= tolerance, or |z| < 4 over several seeds). The parameter's values are restored afterwards.");
 }

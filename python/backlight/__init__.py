@@ -6,11 +6,12 @@
     image = backlight.render(scene, spp=16)      # float32 (height, width, 3)
     grads = backlight.backward(scene, d_image)   # {name: gradient shaped like the parameter}
     loss, grads, image = backlight.grad(scene, target, loss="l2")
+    rows = backlight.check(scene, "light.radiance", target=target)  # adjoint vs finite differences
 
 backlight.torch wraps render and backward as a torch.autograd.Function. Errors a caller can
 cause raise backlight.Error (a ValueError) with the one-line message the CLI prints. One pass
 runs on a scene at a time; passes release the GIL and use every core (TBB).
 """
-from ._backlight import Error, Scene, backward, grad, load, render
+from ._backlight import Error, Scene, backward, check, grad, load, render
 
-__all__ = ["Error", "Scene", "backward", "grad", "load", "render"]
+__all__ = ["Error", "Scene", "backward", "check", "grad", "load", "render"]

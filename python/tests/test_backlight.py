@@ -1,5 +1,6 @@
 """The Python module: parameter views, render and gradients against the CLI and against exact and
 finite-difference derivatives, the GIL, and every kind of bad argument."""
+import math
 import os
 import subprocess
 import threading
@@ -23,6 +24,14 @@ def read_pfm(path):
         assert float(f.readline()) < 0  # little endian
         data = np.frombuffer(f.read(), dtype="<f4").reshape(h, w, 3)
     return data[::-1]  # rows are stored bottom-up
+
+
+def write_pfm(path, image):
+    h, w, _ = image.shape
+    with open(path, "wb") as f:
+        f.write(b"PF\n%d %d\n-1\n" % (w, h))
+        f.write(np.ascontiguousarray(image[::-1], dtype="<f4").tobytes())  # rows bottom-up
+    return path
 
 
 def weights(h, w, seed=3):
@@ -175,6 +184,19 @@ def test_renders_release_the_gil(scene):
     # Messages quoting bytes that are not UTF-8 (a PNG read as JSON; a bytes path) came through empty.
     (lambda s: backlight.load(os.path.join(ROOT, "scenes", "cornell", "wall.png")), "malformed JSON"),
     (lambda s: backlight.load(b"/nonexistent/\xff.json"), "/nonexistent/\\xff.json: file not found"),
+    (lambda s: backlight.check(s, "light.radiance", resolution=RES), "give exactly one of target and d_image"),
+    (lambda s: backlight.check(s, "nope", d_image=np.ones((20, 24, 3), np.float32), resolution=RES),
+     "param: unknown parameter 'nope'"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES, eps=0),
+     "eps: expected a finite number > 0"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               eps="big"), "eps: expected a number, got str"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               directions=0), "directions: 0 is out of range"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               seeds=0), "seeds: 0 is out of range"),
+    (lambda s: backlight.check(s, "light.radiance", target=np.ones((24, 20, 3), np.float32), resolution=RES),
+     "target: expected shape (20, 24, 3)"),
 ])
 def test_bad_arguments_raise_one_line_errors(scene, call, message):
     with pytest.raises(backlight.Error) as info:
@@ -182,6 +204,37 @@ def test_bad_arguments_raise_one_line_errors(scene, call, message):
     text = str(info.value)
     assert message in text and "\n" not in text
     assert isinstance(info.value, ValueError)
+
+
+def test_check_compares_the_adjoint_with_finite_differences(scene, tmp_path):
+    # backlight.check is the CLI's `check`: same rows, values restored afterwards.
+    target = backlight.render(backlight.load(CORNELL, set={"light.radiance": [10, 10, 10]}), spp=4, seed=3,
+                              resolution=RES)
+    before = scene.params["light.radiance"].copy()
+    rows = backlight.check(scene, "light.radiance", target=target, spp=2, seed=1, resolution=RES, directions=3)
+    assert len(rows) == 3
+    for r in rows:
+        assert r["ok"] and r["relative_error"] < 1e-2, r
+        assert abs(r["adjoint"]) > 0 and math.isnan(r["z"])
+    np.testing.assert_array_equal(scene.params["light.radiance"], before)
+    # The same numbers as the CLI prints for the same request.
+    ones = write_pfm(str(tmp_path / "ones.pfm"), np.ones((20, 24, 3), np.float32))
+    cli = subprocess.run([os.path.join(BIN, "backlight"), "check", CORNELL, "--param", "light.radiance",
+                          "--adjoint-image", ones, "--spp", "2", "--seed", "1", "--resolution", "24x20",
+                          "--directions", "2", "-q"], capture_output=True, text=True)
+    assert cli.returncode == 0, cli.stderr
+    printed = [line.split() for line in cli.stdout.splitlines() if line[:1].isdigit()]
+    assert len(printed) == 2, cli.stdout
+    rows = backlight.check(scene, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), spp=2, seed=1,
+                           resolution=RES, directions=2)
+    for r, p in zip(rows, printed):
+        assert float(p[1]) == pytest.approx(r["adjoint"], rel=1e-7)
+        assert float(p[2]) == pytest.approx(r["finite_difference"], rel=1e-7)
+    # Over several seeds (a plastic roughness, which sampling depends on): z scores and standard
+    # errors.
+    rows = backlight.check(scene, "plastic.roughness", target=target, spp=2, seed=1, resolution=RES, directions=1,
+                           seeds=4, eps=0.02)
+    assert not math.isnan(rows[0]["z"]) and rows[0]["fd_stderr"] > 0
 
 
 def test_paths_may_be_path_objects():
