@@ -32,15 +32,26 @@ bool front_facing(const Mesh& m, uint32_t face, const Vec3f& eye) {
   return dot(m.face_normals[face], eye - m.positions[m.indices[3 * size_t(face)]]) > 0.f;
 }
 
+bool differ(const Vec3f& a, const Vec3f& b) { return a.x != b.x || a.y != b.y || a.z != b.z; }
+
 // Whether the shading is discontinuous across an edge between two faces (vertex indices of the
-// faces' copies of its ends).
-bool shading_crease(const Mesh& m, uint32_t f0, uint32_t f1, const uint32_t* c0, const uint32_t* c1) {
+// faces' copies of its ends): a fold of a flat-shaded mesh, or, folded or not, copies of its ends
+// that differ in what shading reads — split normals, a uv seam of a textured material (a texture
+// atlas: the two sides show different texels), different vertex colours. `textured`: the mesh's
+// material reads a texture (without uvs each face's uv is its own barycentrics: every edge is a
+// seam).
+bool shading_crease(const Mesh& m, bool textured, uint32_t f0, uint32_t f1, const uint32_t* c0, const uint32_t* c1) {
   const Vec3f &n0 = m.face_normals[f0], &n1 = m.face_normals[f1];
-  if (dot(n0, n1) > 1.f - 1e-6f) return false;  // coplanar: the same plane on both sides
-  if (m.normals.empty()) return true;           // flat shading
+  const bool coplanar = dot(n0, n1) > 1.f - 1e-6f;
+  if (!coplanar && m.normals.empty()) return true;  // flat shading
+  if (textured && m.uvs.empty()) return true;
   for (int k = 0; k < 2; ++k) {
-    const Vec3f &a = m.normals[c0[k]], &b = m.normals[c1[k]];
-    if (a.x != b.x || a.y != b.y || a.z != b.z) return true;  // split normals
+    if (!m.normals.empty() && differ(m.normals[c0[k]], m.normals[c1[k]])) return true;  // split normals
+    if (textured) {
+      const Vec2f &a = m.uvs[c0[k]], &b = m.uvs[c1[k]];
+      if (a.x != b.x || a.y != b.y) return true;  // uv seam
+    }
+    if (!m.colors.empty() && differ(m.colors[c0[k]], m.colors[c1[k]])) return true;
   }
   return false;
 }
@@ -62,7 +73,10 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
   EdgeTable table;
   for (int mi : wanted) {
     const Mesh& m = scene.meshes[size_t(mi)];
-    if (scene.materials[size_t(m.material)].is_null) continue;  // invisible
+    const Material& material = scene.materials[size_t(m.material)];
+    if (material.is_null) continue;  // invisible
+    const bool textured =
+        material.albedo.bitmap || material.specular.bitmap || material.roughness.bitmap || material.metallic.bitmap;
     std::unordered_map<PositionKey, uint32_t, PositionHash> ids;
     std::vector<uint32_t> welded(m.vertex_count());
     for (size_t v = 0; v < welded.size(); ++v) welded[v] = weld_id(m.positions[v], ids);
@@ -92,10 +106,11 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
       e.mesh = mi;
       e.first_copy = uint32_t(table.copies.size());
       e.faces = uint32_t(j - i);
+      int reversed = 0;  // faces that traverse the edge from end 1 to end 0
       for (size_t k = i; k < j; ++k) {
         const uint32_t f = records[k].face, c = records[k].corner;
         uint32_t va = m.indices[3 * size_t(f) + c], vb = m.indices[3 * size_t(f) + (c + 1) % 3];
-        if (welded[va] != end0) std::swap(va, vb);
+        if (welded[va] != end0) std::swap(va, vb), ++reversed;
         table.copies.push_back(va);
         table.copies.push_back(vb);
       }
@@ -107,7 +122,10 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
       if (e.faces == 2) {
         e.f0 = records[i].face;
         e.f1 = records[i + 1].face;
-        e.always = shading_crease(m, e.f0, e.f1, copies, copies + 2);
+        // Two faces wound consistently traverse their edge in opposite directions. Where they do
+        // not (an asset with a flipped face), one face normal points inwards and the facing test
+        // of candidate_from would miss silhouettes: the edge is a candidate from everywhere.
+        e.always = reversed != 1 || shading_crease(m, textured, e.f0, e.f1, copies, copies + 2);
         keep = e.always || dot(m.face_normals[e.f0], m.face_normals[e.f1]) <= 1.f - 1e-6f;  // can be a silhouette
       }
       if (keep && eye) keep = candidate_from(scene, e, *eye);

@@ -15,7 +15,7 @@ struct MeshEdge {
   Vec3f p0, p1;
   uint32_t first_copy = 0, faces = 0;  // into EdgeTable::copies, `faces` pairs
   uint32_t f0 = 0, f1 = 0;             // the two faces of a two-face edge
-  bool always = false;                 // boundary, non-manifold or crease: a candidate from everywhere
+  bool always = false;  // boundary, non-manifold, crease or seam, or inconsistently wound: a candidate from everywhere
 };
 
 struct EdgeTable {

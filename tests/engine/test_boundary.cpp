@@ -26,6 +26,7 @@
 #include "engine/integrators/boundary.h"
 #include "engine/integrators/interior.h"
 #include "engine/integrators/render.h"
+#include "engine/io/image_io.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
@@ -809,6 +810,95 @@ TEST_CASE("the edge hierarchy and the scan of every edge estimate the same secon
                       << ", scan " << b.mean << " ± " << b.stderr_);
     CHECK(std::abs(z_score(a, b)) < 4);
     CHECK(std::abs(a.mean) > 4 * a.stderr_);  // a derivative the comparison can see
+  }
+}
+
+// [expectation]: the whole derivative against finite differences over seeds.
+TEST_CASE("discontinuities along edges between coplanar faces, and a face wound the other way",
+          "[boundary][expectation]") {
+  // Found by an audit (each case failed with |z| 9-37 before): the edge table dropped every edge
+  // between coplanar faces, so a texture atlas's uv seam and split vertex normals on a flat card
+  // were no discontinuity; and the silhouette test read face normals from the winding, so one
+  // face wound the other way on a smooth mesh hid silhouettes.
+  const std::string dir = test::temp_dir("boundary-seams");
+  Image atlas(2, 1, 3);  // a red texel and a blue one, a uv seam between the card's two triangles
+  atlas.data = {0.9f, 0.1f, 0.1f, 0.1f, 0.1f, 0.9f};
+  write_image(dir + "/atlas.pfm", atlas);
+  const nlohmann::json square = {{-0.5, -0.5, -2}, {0.5, -0.5, -2}, {0.5, 0.5, -2},
+                                 {-0.5, -0.5, -2}, {0.5, 0.5, -2},  {-0.5, 0.5, -2}};
+  struct Case {
+    const char* what;
+    nlohmann::json scene;
+    Image adjoint;
+    PoseDirection dir;
+    double h;
+  };
+  std::vector<Case> cases;
+  Image red_ramp(kRes, kRes, 3), ramp(kRes, kRes, 3);
+  for (int y = 0; y < kRes; ++y)
+    for (int x = 0; x < kRes; ++x) {
+      red_ramp.at(x, y, 0) = float(x) / kRes;  // a ramp: a sideways move is not a symmetry
+      for (int c = 0; c < 3; ++c) ramp.at(x, y, c) = float(x) / kRes;
+    }
+  PoseDirection sideways, tilted;
+  sideways.translate = Vec3d(1, 0, 0);
+  tilted.translate = Vec3d(1, 0.5, 0);
+  {
+    nlohmann::json j = base_scene(2);
+    j["environment"] = {{"type", "constant"}, {"radiance", {0.5, 0.5, 0.5}}};
+    j["materials"]["atlas"] = {{"type", "diffuse"},
+                               {"albedo", {{"type", "bitmap"}, {"file", dir + "/atlas.pfm"}, {"wrap", "clamp"}}}};
+    j["shapes"].push_back({{"name", "card"},
+                           {"type", "mesh"},
+                           {"material", "atlas"},
+                           {"positions", square},
+                           {"indices", {{0, 1, 2}, {3, 4, 5}}},
+                           {"uvs", {{0.1, 0.5}, {0.1, 0.5}, {0.1, 0.5}, {0.9, 0.5}, {0.9, 0.5}, {0.9, 0.5}}}});
+    cases.push_back({"uv seam", j, red_ramp, sideways, 0.004});
+  }
+  {
+    nlohmann::json j = base_scene(2);
+    j["materials"]["white"] = {{"type", "diffuse"}, {"albedo", {0.8, 0.8, 0.8}}};
+    j["shapes"].push_back(
+        {{"name", "card"},
+         {"type", "mesh"},
+         {"material", "white"},
+         {"positions", square},
+         {"indices", {{0, 1, 2}, {3, 4, 5}}},
+         {"normals", {{0, 0, 1}, {0, 0, 1}, {0, 0, 1}, {0.6, 0, 0.8}, {0.6, 0, 0.8}, {0.6, 0, 0.8}}}});
+    j["shapes"].push_back(emitter_shape(
+        "light", "rectangle",
+        {{"scale", 0.3}, {"rotate", {{"axis", {0, 1, 0}}, {"angle", -60}}}, {"translate", {1.5, 0, -1.5}}},
+        {10, 10, 10}));
+    cases.push_back({"split normals", j, constant_adjoint(1.f), tilted, 0.01});
+  }
+  {
+    nlohmann::json j = base_scene(1);
+    j["environment"] = {{"type", "constant"}, {"radiance", {1, 1, 1}}};
+    j["shapes"].push_back(
+        {{"name", "card"},
+         {"type", "mesh"},
+         {"material", "black"},
+         {"positions", {{0.5, 0, 0}, {-0.5, 0, 0}, {0, 0.5, 0}, {0, -0.5, 0}, {0, 0, 0.5}, {0, 0, -0.5}}},
+         {"normals", {{1, 0, 0}, {-1, 0, 0}, {0, 1, 0}, {0, -1, 0}, {0, 0, 1}, {0, 0, -1}}},
+         // The first face wound the other way round from the others.
+         {"indices", {{0, 4, 2}, {0, 5, 2}, {0, 4, 3}, {0, 3, 5}, {1, 4, 2}, {1, 2, 5}, {1, 3, 4}, {1, 5, 3}}},
+         {"transform", {{"translate", {0, 0, -3}}}}});
+    cases.push_back({"flipped face", j, ramp, sideways, 0.01});
+  }
+  for (const Case& c : cases) {
+    auto scene = build(c.scene);
+    const int mi = mesh_index(*scene, "card");
+    const Vec3f pivot = centre(scene->meshes[size_t(mi)]);
+    const Estimate fd = finite_difference(*scene, mi, pivot, c.adjoint, c.dir, c.h, 48, 16);
+    const GeometryEstimate ge = geometry_derivative(*scene, mi, pivot, c.adjoint, c.dir, 16);
+    const double z = z_score(ge.total, fd);
+    INFO(c.what << ": total " << ge.total.mean << " ± " << ge.total.stderr_ << " (primary " << ge.primary
+                << ", interior " << ge.interior << ", secondary " << ge.secondary << "), finite differences " << fd.mean
+                << " ± " << fd.stderr_ << ", z " << z);
+    CHECK(std::abs(z) < 4);
+    CHECK(std::abs(z_score(Estimate{0.0, 0.0}, fd)) > 4);
+    CHECK(std::abs(z_score(Estimate{-ge.total.mean, ge.total.stderr_}, fd)) > 4);
   }
 }
 
