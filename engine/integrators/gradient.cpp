@@ -124,20 +124,95 @@ Vec3d value3(const ParamStore& p, int handle, const Vec3d& fallback) {
 }
 }  // namespace
 
+namespace {
+// The meshes whose pose or vertices want a gradient (every mesh when camera `camera` moves).
+std::vector<int> moving_meshes(const Scene& scene, int camera, bool* camera_moves, const CameraPose** pose) {
+  const ParamStore& P = scene.params;
+  const CameraPose* cam_pose =
+      size_t(camera) < scene.camera_poses.size() ? &scene.camera_poses[size_t(camera)] : nullptr;
+  *camera_moves = cam_pose && (wants(P, cam_pose->origin) || wants(P, cam_pose->rotate));
+  if (pose) *pose = cam_pose;
+  std::vector<int> meshes;
+  for (size_t i = 0; i < scene.mesh_poses.size(); ++i) {
+    const MeshPose& m = scene.mesh_poses[i];
+    if (*camera_moves || wants(P, m.translate) || wants(P, m.rotate) || wants(P, m.scale) || wants(P, m.positions))
+      meshes.push_back(int(i));
+  }
+  return meshes;
+}
+
+// Whether segment a–b (film-plane coordinates) meets the rectangle |x| ≤ hx, |y| ≤ hy (Liang–Barsky).
+bool segment_meets_rectangle(double ax, double ay, double bx, double by, double hx, double hy) {
+  double t0 = 0, t1 = 1;
+  const double dx = bx - ax, dy = by - ay;
+  const double p[4] = {-dx, dx, -dy, dy}, q[4] = {ax + hx, hx - ax, ay + hy, hy - ay};
+  for (int i = 0; i < 4; ++i) {
+    if (p[i] == 0) {
+      if (q[i] < 0) return false;
+      continue;
+    }
+    const double r = q[i] / p[i];
+    if (p[i] < 0)
+      t0 = std::max(t0, r);
+    else
+      t1 = std::min(t1, r);
+    if (t0 > t1) return false;
+  }
+  return true;
+}
+}  // namespace
+
+void check_geometry_view(const Scene& scene, int camera) {
+  const std::string where = scene.source + ": geometry gradients: ";
+  bool camera_moves = false;
+  const CameraPose* pose = nullptr;
+  const std::vector<int> meshes = moving_meshes(scene, camera, &camera_moves, &pose);
+  const Camera& cam = scene.cameras.at(size_t(camera));
+  // A rotating camera turns the environment it sees directly: its texels sweep across the film, a
+  // change no term estimates yet (a constant environment does not change).
+  if (camera_moves && wants(scene.params, pose->rotate) && scene.environment.present && scene.environment.is_map &&
+      !scene.settings.hide_emitters)
+    throw InputError(where + "the rotation of camera '" + cam.name +
+                     "' with an environment map in view is not supported yet (the map's texels move across the film; "
+                     "a constant environment or hide_emitters is)");
+  // The near plane cuts a moving triangle in view, or any when the camera moves: the cut is an
+  // edge of the image that is no mesh edge, which the boundary terms do not sample.
+  const double hx = double(cam.tan_x) * double(cam.near_clip), hy = double(cam.tan_y) * double(cam.near_clip);
+  const Vec3d o(cam.origin), f(cam.forward), r(cam.right), u(cam.true_up);
+  for (int mi : meshes) {
+    const Mesh& m = scene.meshes[size_t(mi)];
+    for (size_t t = 0; t < m.triangle_count(); ++t) {
+      Vec3d p[3];
+      double depth[3];
+      for (int k = 0; k < 3; ++k) {
+        p[k] = Vec3d(m.positions[m.indices[3 * t + size_t(k)]]) - o;
+        depth[k] = dot(p[k], f) - double(cam.near_clip);
+      }
+      // The points where the edges cross the near plane (two, when the plane cuts the triangle).
+      Vec3d cut[2];
+      int n = 0;
+      for (int k = 0; k < 3 && n < 2; ++k) {
+        const double a = depth[k], b = depth[(k + 1) % 3];
+        if ((a < 0) != (b < 0)) cut[n++] = p[k] + (p[(k + 1) % 3] - p[k]) * (a / (a - b));
+      }
+      if (n < 2) continue;
+      if (segment_meets_rectangle(dot(cut[0], r), dot(cut[0], u), dot(cut[1], r), dot(cut[1], u), hx, hy))
+        throw InputError(where + "the near plane of camera '" + cam.name + "' (near_clip " +
+                         (std::ostringstream() << cam.near_clip).str() + ") cuts shape '" + m.name +
+                         "' in view: the cut is an edge of the image the boundary terms do not sample yet (lower "
+                         "near_clip, or move the camera)");
+    }
+  }
+}
+
 void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientRequest& rq) {
   ParamStore& P = scene.params;
   if (!P.wants_geometry()) return;
   check_interior_support(scene);
   const int camera = rq.pass.camera;
-  const CameraPose* cam_pose =
-      size_t(camera) < scene.camera_poses.size() ? &scene.camera_poses[size_t(camera)] : nullptr;
-  const bool camera_moves = cam_pose && (wants(P, cam_pose->origin) || wants(P, cam_pose->rotate));
-  std::vector<int> meshes;
-  for (size_t i = 0; i < scene.mesh_poses.size(); ++i) {
-    const MeshPose& m = scene.mesh_poses[i];
-    if (camera_moves || wants(P, m.translate) || wants(P, m.rotate) || wants(P, m.scale) || wants(P, m.positions))
-      meshes.push_back(int(i));
-  }
+  bool camera_moves = false;
+  const CameraPose* cam_pose = nullptr;
+  const std::vector<int> meshes = moving_meshes(scene, camera, &camera_moves, &cam_pose);
   if (meshes.empty() && !camera_moves) return;
   const int spp = rq.geometry_spp > 0 ? rq.geometry_spp : std::max(rq.pass.spp, 1);
   const Camera& cam = scene.cameras.at(size_t(camera));
@@ -226,7 +301,10 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
 }
 
 GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
-  if (scene.params.wants_geometry()) check_interior_support(scene);  // refuse before any work
+  if (scene.params.wants_geometry()) {  // refuse before any work
+    check_interior_support(scene);
+    check_geometry_view(scene, rq.pass.camera);
+  }
   GradientResult result = local_gradient(scene, rq);
   if (scene.params.wants_geometry() && dist::is_root()) {
     const Image adjoint =

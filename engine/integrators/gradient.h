@@ -52,6 +52,10 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& request);
 // The geometry part of a gradient: adds dF/dθ for F = ⟨adjoint, I⟩ into the grad buffers of the
 // geometry parameters that require it (compute_gradient calls it on rank 0).
 void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientRequest& request);
+// Refuses (InputError, one line) views whose geometry gradient no term estimates: a rotating camera
+// with an environment map in view, a near plane cutting a moving triangle (any, when the camera
+// moves) inside the frustum.
+void check_geometry_view(const Scene& scene, int camera);
 
 // One row of a directional-derivative check.
 struct CheckRow {

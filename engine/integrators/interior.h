@@ -21,10 +21,10 @@
 // derivatives are pulled back along the path once, from its end, over a per-path record of its
 // vertices (O(max depth) per thread; no per-image transcript, memory flat in spp).
 //
-// Supported for now: diffuse surfaces, constant-radiance area emitters, any environment, no
-// media, no null surfaces, no vertex colours, no bitmap textures on surfaces (a sliding vertex
-// reads its textures at moving uvs, whose derivative is not implemented). Anything else is
-// refused with an InputError naming what.
+// Supported for now: diffuse surfaces (constant or bitmap albedo: a sliding point reads its
+// texture at moving uvs, the bilinear lookup's slope), constant-radiance area emitters, any
+// environment (check_geometry_view refuses a rotating camera with a map in view), no media, no
+// null surfaces, no vertex colours. Anything else is refused with an InputError naming what.
 #include <cstdint>
 #include <vector>
 

@@ -445,6 +445,16 @@ expect_error set_camera_nan "front.origin" "re:NaN|finite" -- render "$pose" -o 
 expect_error grad_geometry_unsupported "cornell/scene.json" "geometry gradients" "only diffuse surfaces are supported yet" "metal_cube" -- \
   grad "$cornell" --adjoint-image "$cornell_ones" --param metal_cube.translate --resolution 32x32 --spp 1 --out gglossy
 expect_error set_count "white.albedo" "2 values" "[3]" -- render "$small" -o o.exr --set white.albedo=0.5,0.5
+# Views whose geometry gradient no term estimates were silently wrong (helper-27 audit): refused.
+scene_variant "$pose" pose_near.json "s['cameras'][0]['near_clip'] = 3.3"
+expect_error grad_geometry_near_cut "pose_near.json" "near plane of camera 'front'" "near_clip 3.3" "cuts shape" -- \
+  grad pose_near.json --adjoint-image "$pose_ones" --param box.translate --spp 1 --out g_near
+scene_variant "$pose" "$tmp/pose_envmap.json" \
+  "s['environment'] = {'type': 'envmap', 'file': '$repo/scenes/smoke/sky.pfm'}"
+expect_error grad_geometry_env_rotate "pose_envmap.json" "rotation of camera 'front'" "environment map in view" -- \
+  grad "$tmp/pose_envmap.json" --adjoint-image "$pose_ones" --param front.rotate --spp 1 --out g_envrot
+expect_ok grad_geometry_env_origin grad "$tmp/pose_envmap.json" --adjoint-image "$pose_ones" --param front.origin \
+  --spp 1 --out g_envorigin -q
 expect_error set_syntax "--set" "white.albedo" -- render "$small" -o o.exr --set white.albedo
 expect_error set_corrupt_image "random.png" "unsupported image format" -- \
   render "$small" -o o.exr --set wall.albedo=small/random.png
