@@ -23,7 +23,9 @@ using edges::add_to_edge;
 using edges::candidate_from;
 using edges::edge_topology;
 using edges::EdgeTable;
+using edges::fold_from;
 using edges::MeshEdge;
+using edges::on_faces;
 
 // Liang–Barsky: the parameter range [t0, t1] of a + t·(b − a), t ∈ [0, 1], inside [0, w]×[0, h].
 bool clip_to_film(double ax, double ay, double bx, double by, double w, double h, double* t0, double* t1) {
@@ -129,6 +131,7 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
     uint32_t edge;
     EndProjection a, b;  // the ends at the edge's p0 and p1
     double t0, t1;       // the part inside the film
+    bool fold;           // both faces turned the same way from the camera (fold_from)
   };
   std::vector<Projected> projected;
   std::vector<double> cdf;
@@ -137,6 +140,7 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
     const MeshEdge& e = table.edges[i];
     Projected pr{};
     pr.edge = i;
+    pr.fold = fold_from(scene, e, cam.origin);
     if (!project_end(cam, e.p0, e.p1, &pr.a) || !project_end(cam, e.p1, e.p0, &pr.b)) continue;
     if (!clip_to_film(pr.a.x, pr.a.y, pr.b.x, pr.b.y, double(cam.width), double(cam.height), &pr.t0, &pr.t1)) continue;
     const double len = std::hypot(pr.b.x - pr.a.x, pr.b.y - pr.a.y) * (pr.t1 - pr.t0);
@@ -178,10 +182,14 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
       const double inv = 1.0 / std::sqrt(ex * ex + ey * ey);
       const double nx = -ey * inv, ny = ex * inv;
       const double eps = double(options.side_offset);
-      const Vec3f minus = trace_path<float>(
-          scene, PathStart{cam.generate(float(x - eps * nx), float(y - eps * ny)), 1, 0.f, cam.medium}, sampler, none);
-      const Vec3f plus = trace_path<float>(
-          scene, PathStart{cam.generate(float(x + eps * nx), float(y + eps * ny)), 1, 0.f, cam.medium}, sampler, none);
+      const Ray ray_minus = cam.generate(float(x - eps * nx), float(y - eps * ny)),
+                ray_plus = cam.generate(float(x + eps * nx), float(y + eps * ny));
+      const Hit hit_minus = scene.geometry->intersect(ray_minus), hit_plus = scene.geometry->intersect(ray_plus);
+      const MeshEdge& edge = table.edges[pr.edge];
+      // A fold near an outline: a side off the mesh sees the outline's jump, not the fold's.
+      if (pr.fold && !(on_faces(edge, hit_minus) && on_faces(edge, hit_plus))) continue;
+      const Vec3f minus = trace_path<float>(scene, PathStart{ray_minus, 1, 0.f, cam.medium, &hit_minus}, sampler, none);
+      const Vec3f plus = trace_path<float>(scene, PathStart{ray_plus, 1, 0.f, cam.medium, &hit_plus}, sampler, none);
       const Vec3f delta = minus - plus;
       const double w =
           (double(adjoint.at(px, py, 0)) * double(delta.x) + double(adjoint.at(px, py, 1)) * double(delta.y) +

@@ -66,6 +66,12 @@ bool candidate_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye) {
   return front_facing(m, e.f0, eye) != front_facing(m, e.f1, eye);
 }
 
+bool fold_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye) {
+  if (e.faces != 2 || !e.consistent) return false;
+  const Mesh& m = scene.meshes[size_t(e.mesh)];
+  return front_facing(m, e.f0, eye) == front_facing(m, e.f1, eye);
+}
+
 // The edges of the meshes in `wanted` that can be a discontinuity seen from somewhere (all but
 // those between two coplanar faces with continuous shading), or, given an eye, those that are one
 // seen from it.
@@ -125,7 +131,8 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
         // Two faces wound consistently traverse their edge in opposite directions. Where they do
         // not (an asset with a flipped face), one face normal points inwards and the facing test
         // of candidate_from would miss silhouettes: the edge is a candidate from everywhere.
-        e.always = reversed != 1 || shading_crease(m, textured, e.f0, e.f1, copies, copies + 2);
+        e.consistent = reversed == 1;
+        e.always = !e.consistent || shading_crease(m, textured, e.f0, e.f1, copies, copies + 2);
         keep = e.always || dot(m.face_normals[e.f0], m.face_normals[e.f1]) <= 1.f - 1e-6f;  // can be a silhouette
       }
       if (keep && eye) keep = candidate_from(scene, e, *eye);

@@ -16,6 +16,7 @@ struct MeshEdge {
   uint32_t first_copy = 0, faces = 0;  // into EdgeTable::copies, `faces` pairs
   uint32_t f0 = 0, f1 = 0;             // the two faces of a two-face edge
   bool always = false;  // boundary, non-manifold, crease or seam, or inconsistently wound: a candidate from everywhere
+  bool consistent = true;  // a two-face edge traversed in opposite directions by its faces (consistent winding)
 };
 
 struct EdgeTable {
@@ -26,6 +27,16 @@ struct EdgeTable {
 // Whether an edge is a discontinuity seen from `eye`: always for boundary, non-manifold and
 // crease edges, for the others when one face is front- and the other back-facing.
 bool candidate_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye);
+
+// Whether a two-face edge of consistent winding is a fold seen from `eye` (both faces turned towards
+// it, or both away; with a face wound the other way round the facing test says nothing):
+// its jump is between its own faces, so a side ray that meets neither (near an outline the fold
+// runs along) measures another edge's jump. The boundary terms count a fold's sample only where
+// both side rays meet one of its faces (on_faces).
+bool fold_from(const Scene& scene, const MeshEdge& e, const Vec3f& eye);
+inline bool on_faces(const MeshEdge& e, const Hit& hit) {
+  return hit.mesh == e.mesh && (uint32_t(hit.triangle) == e.f0 || uint32_t(hit.triangle) == e.f1);
+}
 
 // The edges of the meshes in `wanted` that can be a discontinuity seen from somewhere (all but
 // those between two coplanar faces with continuous shading), or, given an eye, those that are one

@@ -516,15 +516,25 @@ void one_edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHi
   const PathSampler side(es.seed ^ kSideSeed, pixel, stream);
   const double jacobian = length(cross(normalize(p1 - p0), omega)) / r * inv_pdf;  // arc length / pdf
   NoObserver none;
+  Ray rays[2];
+  Hit hits[2];
+  for (int side_index = 0; side_index < 2; ++side_index) {
+    const Vec3f d(normalize(omega_o + n_o * ((side_index == 0 ? -1.0 : 1.0) * es.side_angle)));
+    rays[side_index] = Ray{origin, d};
+    hits[side_index] = scene.geometry->intersect(rays[side_index]);
+  }
+  // A fold seen from x, near an outline it runs along: a side off the mesh sees the outline's jump.
+  if (edges::fold_from(scene, e, v.p) && !(edges::on_faces(e, hits[0]) && edges::on_faces(e, hits[1]))) return;
   double fixed = 0;  // ⟨a, h_fixed⁻ − h_fixed⁺⟩
   for (int side_index = 0; side_index < 2; ++side_index) {
     const double sign = side_index == 0 ? -1.0 : 1.0;
-    const Vec3f d(normalize(omega_o + n_o * (sign * es.side_angle)));
-    const Ray ray{origin, d};
-    const Vec3f bsdf_part = v.beta * f * trace_path<float>(scene, PathStart{ray, vertex + 1, p_bsdf, -1}, side, none);
+    const Ray& ray = rays[side_index];
+    const Vec3f d = ray.direction;
+    const Hit& hit = hits[side_index];
+    const Vec3f bsdf_part =
+        v.beta * f * trace_path<float>(scene, PathStart{ray, vertex + 1, p_bsdf, -1, &hit}, side, none);
     double h_fixed = inner(a, bsdf_part);
     // The light-sampled share of what this side sees directly.
-    const Hit hit = scene.geometry->intersect(ray);
     if (hit.mesh < 0) {
       if (scene.environment.present) {
         const EnvLookup look = scene.environment.lookup(d);

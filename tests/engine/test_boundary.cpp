@@ -416,6 +416,41 @@ TEST_CASE("an emitting sphere mesh: its silhouette loop among 2208 faces", "[bou
   check_pose_derivative(*scene, mi, t, 0.05, "sphere translate");
 }
 
+TEST_CASE("folds of a flat-shaded mesh along its outline add no jump of their own", "[boundary]") {
+  // A black, flat-shaded sphere of small faces (~0.5 pixel) against a white sky: many of its folds
+  // run nearly along the outline, where one of a fold's side rays (10^-3 pixel off the edge) can
+  // miss the mesh and see the sky. Counting that jump added the outline's contrast a second time
+  // (an audit: +30% at 32², the bundled deform sphere); a fold's sample now counts only where both
+  // sides meet its faces.
+  nlohmann::json j = base_scene(1);
+  j["environment"] = {{"type", "constant"}, {"radiance", {1, 1, 1}}};
+  j["shapes"].push_back({{"name", "ball"},
+                         {"type", "sphere"},
+                         {"segments", 96},
+                         {"face_normals", true},
+                         {"material", "black"},
+                         {"transform", {{"scale", 0.15}, {"translate", {0.1, -0.05, -3}}}}});
+  auto scene = build(j);
+  const int mi = mesh_index(*scene, "ball");
+  const Vec3f pivot = centre(scene->meshes[size_t(mi)]);
+  const Image ones = constant_adjoint(1.f);
+  PoseDirection s, t;
+  s.scale = Vec3d(1, 1, 1);
+  t.translate = Vec3d(0.2, 0, 1);  // towards the camera: the outline grows
+  for (const PoseDirection& dir : {s, t}) {
+    const Estimate fd = finite_difference(*scene, mi, pivot, ones, dir, 0.02, 64, 16);
+    const Estimate be = boundary_derivative(*scene, mi, pivot, ones, dir, 16, 1 << 16);
+    const double z = z_score(be, fd);
+    INFO("scale " << dir.scale.x << ", translate z " << dir.translate.z << ": boundary " << be.mean << " ± "
+                  << be.stderr_ << ", finite differences " << fd.mean << " ± " << fd.stderr_ << ", z " << z);
+    CHECK(std::abs(z) < 4);
+    // The comparison resolves a 10% error in the scale direction (the folds' jump was +7.8% there:
+    // boundary −392 ± 3 against finite differences −364 ± 5, z −4.8; the translation, which moves
+    // fewer folds along the outline, was within its noise).
+    if (dir.scale.x != 0) CHECK(std::abs(z_score(Estimate{be.mean * 1.1, be.stderr_}, fd)) > 4);
+  }
+}
+
 namespace {
 
 // A diffuse floor and back wall lit by a small light above them, a black square between light
