@@ -6,11 +6,13 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <climits>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <stdexcept>
+#include <thread>
 
 #include "engine/core/errors.h"
 #include "engine/core/params.h"
@@ -88,6 +90,34 @@ void sum_in_place(T* data, size_t n, MPI_Datatype type, size_t chunk) {
 
 }  // namespace
 
+namespace {
+// FNV-1a over the command line and the bytes of the regular files it names as inputs (a scene, a
+// config, a target image), so that ranks started with different commands, or reading different copies of
+// those files (a stale copy on one node), are caught before they mix their shares.
+uint64_t command_hash(int argc, char** argv) {
+  uint64_t h = 1469598103934665603ull;
+  auto add = [&](const char* data, size_t n) {
+    for (size_t i = 0; i < n; ++i) h = (h ^ uint8_t(data[i])) * 1099511628211ull;
+  };
+  for (int i = 1; i < argc; ++i) {
+    add(argv[i], std::strlen(argv[i]) + 1);
+    // Outputs are not read (an old output only rank 0's node holds is no disagreement).
+    const bool output = i > 1 && (std::strcmp(argv[i - 1], "-o") == 0 || std::strcmp(argv[i - 1], "--output") == 0);
+    if (output) continue;
+    std::error_code ec;
+    const std::filesystem::path path(argv[i]);
+    if (!std::filesystem::is_regular_file(path, ec) || std::filesystem::file_size(path, ec) > (uint64_t(64) << 20))
+      continue;
+    if (FILE* f = std::fopen(argv[i], "rb")) {
+      char buffer[1 << 16];
+      for (size_t n; (n = std::fread(buffer, 1, sizeof buffer, f)) > 0;) add(buffer, n);
+      std::fclose(f);
+    }
+  }
+  return h;
+}
+}  // namespace
+
 Session::Session(int& argc, char**& argv) {
   // Only under a launcher (mpirun/srun set these): a plain `backlight ...` stays one process
   // and does not need a working MPI runtime.
@@ -108,6 +138,20 @@ Session::Session(int& argc, char**& argv) {
     g_fail_rank = -1;
   const char* split = std::getenv("BACKLIGHT_MPI_SPLIT");
   g_blocks = split && std::strcmp(split, "blocks") == 0;
+  // Every rank must run the same command on the same files: different film sizes corrupted the
+  // image gather's buffers, different sample counts mixed two renders into one image, silently.
+  const uint64_t mine = command_hash(argc, argv);
+  uint64_t lowest = 0, highest = 0;
+  MPI_Allreduce(&mine, &lowest, 1, MPI_UINT64_T, MPI_MIN, MPI_COMM_WORLD);
+  MPI_Allreduce(&mine, &highest, 1, MPI_UINT64_T, MPI_MAX, MPI_COMM_WORLD);
+  if (lowest != highest) {
+    if (g_rank == 0)
+      std::fprintf(stderr,
+                   "backlight: the ranks were started with different command lines, or read different copies of the "
+                   "files they name (every rank must run the same command on the same files)\n");
+    MPI_Finalize();
+    std::exit(2);
+  }
   if (g_rank != 0) {
     // Rank 0 prints; the others keep their stderr for error lines only.
     std::fflush(stdout);
@@ -246,6 +290,9 @@ int fail(int code, const std::string& message) {
     return code;
   }
   // Mid-run: the other ranks are in (or heading for) a collective operation that cannot complete.
+  // An error every rank meets (a geometry refusal, an overflowing sum) printed one line per rank:
+  // the others wait before they print, so rank 0's line and abort come first and end them.
+  if (g_rank != 0) std::this_thread::sleep_for(std::chrono::seconds(2));
   std::fprintf(error_stream(), "backlight: rank %d: %s\n", g_rank, message.c_str());
   std::fflush(error_stream());
   MPI_Abort(MPI_COMM_WORLD, code);

@@ -327,13 +327,17 @@ GradientResult compute_gradient(Scene& scene, const GradientRequest& rq) {
     throw InputError(what + " is not finite: the render or the " +
                      std::string(rq.adjoint_image ? "adjoint image" : "target") + " exceeds float's range");
   }
-  for (const Param& p : scene.params.all())
+  check_gradients_finite(scene.params);
+  return result;
+}
+
+void check_gradients_finite(const ParamStore& params) {
+  for (const Param& p : params.all())
     if (p.requires_grad)
       for (float g : p.grad)
         if (!std::isfinite(g))
           throw InputError("the gradient of '" + p.name +
                            "' is not finite: float overflow (a radiance or an adjoint image too large)");
-  return result;
 }
 
 void check_eps_range(const Param& p, double eps) {

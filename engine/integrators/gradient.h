@@ -56,6 +56,10 @@ void add_geometry_gradient(Scene& scene, const Image& adjoint, const GradientReq
 // with an environment map in view, a near plane cutting a moving triangle (any, when the camera
 // moves) inside the frustum.
 void check_geometry_view(const Scene& scene, int camera);
+// Throws (InputError naming the parameter) when a gradient that is wanted holds inf or NaN (float
+// overflow). compute_gradient checks its result; a caller that accumulates passes (rq.accumulate)
+// or sums over MPI ranks checks the sum.
+void check_gradients_finite(const ParamStore& params);
 
 // One row of a directional-derivative check.
 struct CheckRow {

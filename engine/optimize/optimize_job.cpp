@@ -1095,6 +1095,12 @@ class Job {
       }
       if (initial_rmse_ < 0 && log_.empty()) initial_rmse_ = current_rmse();
       dist::reduce_gradients(scene_->params);  // the ranks' shares of every view, summed once
+      // The sum can overflow where every rank's share did not (and the separate loss and adjoint
+      // passes are checked nowhere else): Adam would turn inf into NaN parameters and checkpoint them.
+      check_gradients_finite(scene_->params);
+      if (!std::isfinite(loss))
+        throw InputError("the loss of iteration " + std::to_string(it) +
+                         " is not finite: float overflow (a radiance too large)");
       const auto step_start = std::chrono::steady_clock::now();
       loss /= per_iteration;
       for (auto& p : c_.params) {

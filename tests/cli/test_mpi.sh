@@ -172,6 +172,39 @@ code=$?
 [ "$(echo "$out" | wc -l)" -eq 1 ] && echo "$out" | grep -q "^backlight: o2/checkpoint/state.json: checkpoint moments" ||
   fail "bad checkpoint on 2 ranks printed: $out"
 
+# Ranks started with different commands (an MPMD launch; a stale copy of a file on one node looks
+# the same): different film sizes corrupted the image gather's heap (malloc abort, exit 134) and
+# different spp mixed two renders into one image with exit 0. One line, exit 2, nothing written.
+out=$(mpirun -q --oversubscribe -n 1 "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr : \
+  -n 1 "$bin" render scene.json --spp 3 --threads 1 -q -o mix.exr 2>&1)
+code=$?
+[ $code -eq 2 ] && [ "$out" = "backlight: the ranks were started with different command lines, or read different copies of the files they name (every rank must run the same command on the same files)" ] ||
+  fail "ranks with different commands: exit $code, printed: $out"
+[ ! -e mix.exr ] || fail "ranks with different commands wrote mix.exr"
+cp scene.json scene_b.json
+echo " " >> scene_b.json
+mkdir -p other && cp scene_b.json other/scene.json && cp start.exr truth.exr other/
+out=$(mpirun -q --oversubscribe -n 1 "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr : \
+  -n 1 -wdir other "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr 2>&1)
+code=$?
+[ $code -eq 2 ] || fail "ranks reading different copies of scene.json: exit $code, printed: $out"
+
+# A gradient that overflows float (environment radiance 1e30; the separate loss and adjoint passes
+# of adjoint_spp ≠ spp): one process ran on with NaN parameters and exit 0, two ranks the same or,
+# where only the ranks' sum overflowed, checkpointed NaN; an error every rank meets mid-run
+# printed one line per rank. Now one line, exit 2, no checkpoint, on 1 and on 2 ranks.
+sed 's/"spp": 4,/"spp": 4, "adjoint_spp": 2, "set": {"environment.radiance": [1e30, 1e30, 1e30]},/' o1.json |
+  sed 's/"output": "o1"/"output": "ov"/' > ov.json
+grep -q '"adjoint_spp": 2' ov.json || fail "ov.json: the config edit did not apply"
+for r in 1 2; do
+  rm -rf ov
+  if [ $r -eq 1 ]; then out=$("$bin" optimize ov.json --threads 1 --quiet 2>&1); else out=$(mpi 2 optimize ov.json --threads 1 --quiet 2>&1); fi
+  code=$?
+  [ $code -eq 2 ] && [ "$(echo "$out" | wc -l)" -eq 1 ] && echo "$out" | grep -q "the gradient of 'floor.albedo' is not finite" ||
+    fail "an overflowing gradient on $r rank(s): exit $code, printed: $out"
+  [ ! -e ov/checkpoint ] || fail "an overflowing gradient on $r rank(s) left a checkpoint"
+done
+
 # A rank failing mid-run (fault injection at its 40th collective operation): its one line, and
 # every rank ends, non-zero.
 out=$(mpirun -q --oversubscribe -n 2 -x BACKLIGHT_MPI_FAIL=1:40 "$bin" optimize o1.json --threads 1 --quiet 2>&1)
