@@ -27,27 +27,6 @@ using edges::fold_from;
 using edges::MeshEdge;
 using edges::on_faces;
 
-// Liang–Barsky: the parameter range [t0, t1] of a + t·(b − a), t ∈ [0, 1], inside [0, w]×[0, h].
-bool clip_to_film(double ax, double ay, double bx, double by, double w, double h, double* t0, double* t1) {
-  double lo = 0, hi = 1;
-  const double dx = bx - ax, dy = by - ay;
-  const double p[4] = {-dx, dx, -dy, dy}, q[4] = {ax, w - ax, ay, h - ay};
-  for (int k = 0; k < 4; ++k) {
-    if (p[k] == 0) {
-      if (q[k] < 0) return false;
-      continue;
-    }
-    const double r = q[k] / p[k];
-    if (p[k] < 0)
-      lo = std::max(lo, r);
-    else
-      hi = std::min(hi, r);
-  }
-  *t0 = lo;
-  *t1 = hi;
-  return hi > lo;
-}
-
 // Film position of world point p and the rows of its Jacobian, in double (no near-plane test).
 void project_raw(const Camera& cam, const Vec3d& p, double* x, double* y, Vec3d* jx, Vec3d* jy) {
   const Vec3d d = p - Vec3d(cam.origin), right(cam.right), up(cam.true_up), forward(cam.forward);
@@ -119,6 +98,26 @@ void reduce_into(tbb::enumerable_thread_specific<Accumulator>& per_thread, Geome
 }
 
 }  // namespace
+
+bool clip_to_film(double ax, double ay, double bx, double by, double w, double h, double* t0, double* t1) {
+  double lo = 0, hi = 1;
+  const double dx = bx - ax, dy = by - ay;
+  const double p[4] = {-dx, dx, -dy, dy}, q[4] = {ax, w - ax, ay, h - ay};
+  for (int k = 0; k < 4; ++k) {
+    if (p[k] == 0) {
+      if (q[k] < 0) return false;
+      continue;
+    }
+    const double r = q[k] / p[k];
+    if (p[k] < 0)
+      lo = std::max(lo, r);
+    else
+      hi = std::min(hi, r);
+  }
+  *t0 = lo;
+  *t1 = hi;
+  return hi > lo;
+}
 
 GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options) {
   const Camera& cam = scene.cameras.at(size_t(options.camera));

@@ -73,6 +73,10 @@ struct BoundaryOptions {
   const std::atomic<bool>* cancel = nullptr;
 };
 
+// Liang–Barsky: the parameter range [t0, t1] of a + t·(b − a), t ∈ [0, 1], inside [0, w]×[0, h];
+// false when the segment misses the rectangle.
+bool clip_to_film(double ax, double ay, double bx, double by, double w, double h, double* t0, double* t1);
+
 // Primary-visibility boundary term of dF/d(vertex positions) for F = Σ_p ⟨adjoint_p, I_p⟩
 // (`adjoint` has the camera's size and 3 channels).
 GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjoint, const BoundaryOptions& options);

@@ -141,24 +141,10 @@ std::vector<int> moving_meshes(const Scene& scene, int camera, bool* camera_move
   return meshes;
 }
 
-// Whether segment a–b (film-plane coordinates) meets the rectangle |x| ≤ hx, |y| ≤ hy (Liang–Barsky).
+// Whether segment a–b (film-plane coordinates) meets the rectangle |x| ≤ hx, |y| ≤ hy.
 bool segment_meets_rectangle(double ax, double ay, double bx, double by, double hx, double hy) {
-  double t0 = 0, t1 = 1;
-  const double dx = bx - ax, dy = by - ay;
-  const double p[4] = {-dx, dx, -dy, dy}, q[4] = {ax + hx, hx - ax, ay + hy, hy - ay};
-  for (int i = 0; i < 4; ++i) {
-    if (p[i] == 0) {
-      if (q[i] < 0) return false;
-      continue;
-    }
-    const double r = q[i] / p[i];
-    if (p[i] < 0)
-      t0 = std::max(t0, r);
-    else
-      t1 = std::min(t1, r);
-    if (t0 > t1) return false;
-  }
-  return true;
+  double t0 = 0, t1 = 0;
+  return clip_to_film(ax + hx, ay + hy, bx + hx, by + hy, 2 * hx, 2 * hy, &t0, &t1);
 }
 }  // namespace
 
