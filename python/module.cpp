@@ -442,16 +442,13 @@ void require(Scene& scene, const std::optional<std::vector<std::string>>& params
   scene.params.require_grad(names);
 }
 
-// backward and grad: the image argument (d_image, or the target when `loss` is given) checked
-// against the film, the request built, and the pass run without the GIL.
-GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* what, const std::string* loss,
-                             const std::string& method, const PassArgs& a, std::optional<uint64_t> adjoint_seed,
-                             const std::optional<std::vector<std::string>>& params) {
-  refresh(s);
-  CameraScope scope(*s.scene, a);
-  const Camera& cam = scope.camera();
+// The request of a gradient pass (backward, grad, check): `image` checked against the film and
+// copied into `img`, the target of a loss when `loss` is given, else the adjoint image.
+GradientRequest request_for(const Scene& scene, const Camera& cam, const py::handle& image, const char* what,
+                            const std::string* loss, const std::string& method, const PassArgs& a,
+                            std::optional<uint64_t> adjoint_seed, Image& img) {
   auto arr = checked_array(image, {cam.height, cam.width, 3}, what);
-  Image img(cam.width, cam.height, 3);
+  img = Image(cam.width, cam.height, 3);
   std::copy(arr.data(), arr.data() + arr.size(), img.data.begin());
   GradientRequest rq;
   rq.method = parse_method(method);
@@ -461,8 +458,20 @@ GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* wh
   } else {
     rq.adjoint_image = &img;
   }
-  rq.pass = pass_options(*s.scene, a);
+  rq.pass = pass_options(scene, a);
   rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
+  return rq;
+}
+
+// backward and grad: the image argument (d_image, or the target when `loss` is given) checked
+// against the film, the request built, and the pass run without the GIL.
+GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* what, const std::string* loss,
+                             const std::string& method, const PassArgs& a, std::optional<uint64_t> adjoint_seed,
+                             const std::optional<std::vector<std::string>>& params) {
+  refresh(s);
+  CameraScope scope(*s.scene, a);
+  Image img;
+  GradientRequest rq = request_for(*s.scene, scope.camera(), image, what, loss, method, a, adjoint_seed, img);
   require(*s.scene, params);
   GradientResult result;
   interruptible([&](const std::atomic<bool>* cancel) {
@@ -512,21 +521,11 @@ py::list check_py(PyScene& s, const std::string& param, const py::object& target
   const auto lock = lock_for_pass(s);
   refresh(s);
   CameraScope scope(*s.scene, a);
-  const Camera& cam = scope.camera();
-  auto arr = checked_array(target.is_none() ? d_image : target, {cam.height, cam.width, 3},
-                           target.is_none() ? "d_image" : "target");
-  Image img(cam.width, cam.height, 3);
-  std::copy(arr.data(), arr.data() + arr.size(), img.data.begin());
-  GradientRequest rq;
-  rq.method = parse_method(method);
-  if (!target.is_none()) {
-    rq.loss = parse_loss(loss);
-    rq.target = &img;
-  } else {
-    rq.adjoint_image = &img;
-  }
-  rq.pass = pass_options(*s.scene, a);
-  rq.adjoint_seed = adjoint_seed.value_or(rq.pass.seed);
+  Image img;
+  GradientRequest rq =
+      target.is_none()
+          ? request_for(*s.scene, scope.camera(), d_image, "d_image", nullptr, method, a, adjoint_seed, img)
+          : request_for(*s.scene, scope.camera(), target, "target", &loss, method, a, adjoint_seed, img);
   std::vector<CheckRow> rows;
   interruptible([&](const std::atomic<bool>* cancel) {
     rq.pass.cancel = cancel;
