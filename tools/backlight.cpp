@@ -101,6 +101,7 @@ struct SceneFlags {
       s->settings.rr_depth = *rr_depth;
     }
     if (seed) s->settings.seed = *seed;
+    require_same_scene(*s);
     return s;
   }
   PassOptions pass(const Scene& s) const {

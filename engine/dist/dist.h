@@ -73,6 +73,11 @@ struct PeerFailed {
   int code;
 };
 
+// Requires `value` (a hash of what every rank loaded) to be the same on all ranks: when it is not,
+// rank 0 throws InputError(message) and the others PeerFailed{2} (one agreed line, exit 2). A
+// collective operation: a rank that failed before it is agreed on there, as at any first one.
+void require_same(uint64_t value, const std::string& message);
+
 // Runs `step`, which must not call collective operations, on every rank and agrees on its
 // outcome like the first collective does: when it threw on some rank, the lowest such rank
 // rethrows its exception (reported as one line, without an abort) and the others throw

@@ -301,6 +301,21 @@ int fail(int code, const std::string& message) {
 
 void finish() { collective(); }
 
+void require_same(uint64_t value, const std::string& message) {
+  if (g_size == 1) return;
+  // Not counted as a collective for BACKLIGHT_MPI_FAIL: the injected failures stay where the
+  // tests put them.
+  if (g_session && !g_agreed) agree(false, 0);
+  const MpiTimer timer;
+  uint64_t lowest = 0, highest = 0;
+  MPI_Allreduce(&value, &lowest, 1, MPI_UINT64_T, MPI_MIN, MPI_COMM_WORLD);
+  MPI_Allreduce(&value, &highest, 1, MPI_UINT64_T, MPI_MAX, MPI_COMM_WORLD);
+  if (lowest == highest) return;
+  if (g_rank != 0) throw PeerFailed{2};
+  g_error_agreed = true;
+  throw InputError(message);
+}
+
 void agreed_step(const std::function<void()>& step) {
   if (g_size == 1) return step();
   std::exception_ptr error;

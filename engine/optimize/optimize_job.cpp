@@ -620,6 +620,7 @@ class Job {
   int run(bool resume) {
     scene_ = load_scene(c_.scene);
     apply_scene_overrides(*scene_);
+    require_same_scene(*scene_);
     resolve_views();
     for (auto& p : c_.params) {
       p.handle = scene_->params.find(p.name);
@@ -798,7 +799,7 @@ class Job {
   // the ground truth of the parameter RMSE.
   std::map<std::string, Image> target_images_;  // by camera name
   std::unique_ptr<Scene> reference_;
-  size_t reference_content_ = 0;  // hash of reference_'s parameter values and meshes
+  uint64_t reference_content_ = 0;  // reference_->content_hash()
   void read_target_inputs() {
     for (const auto& [name, file] : c_.target_files) {  // (a target of no view was ignored)
       bool viewed = false;
@@ -823,20 +824,7 @@ class Job {
       add_extra_cameras(*reference_);
       if (c_.width)
         for (auto& rc : reference_->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
-      auto mix = [&](const void* data, size_t bytes) {
-        const size_t h = std::hash<std::string_view>{}(std::string_view(static_cast<const char*>(data), bytes));
-        reference_content_ = reference_content_ * 1099511628211ull ^ h;
-      };
-      for (const Param& p : reference_->params.all()) {
-        mix(p.name.data(), p.name.size());
-        mix(p.value.data(), p.value.size() * sizeof(float));
-      }
-      for (const Mesh& m : reference_->meshes) {
-        mix(m.positions.data(), m.positions.size() * sizeof(Vec3f));
-        mix(m.indices.data(), m.indices.size() * sizeof(uint32_t));
-        mix(m.normals.data(), m.normals.size() * sizeof(Vec3f));
-        mix(m.uvs.data(), m.uvs.size() * sizeof(Vec2f));
-      }
+      reference_content_ = reference_->content_hash();
     }
   }
 

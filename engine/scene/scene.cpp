@@ -8,7 +8,10 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/dist/dist.h"
+#include "engine/scene/scene_load.h"
 
 namespace bl {
 
@@ -258,6 +261,40 @@ EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) c
   s.b1 = b1;
   s.b2 = b2;
   return s;
+}
+
+uint64_t Scene::content_hash() const {
+  uint64_t h = 1469598103934665603ull;
+  auto add = [&h](const void* data, size_t bytes) {
+    // Eight bytes per step (a 64³ grid is 1 MB), then the tail byte by byte, and the length.
+    const auto* b = static_cast<const unsigned char*>(data);
+    size_t i = 0;
+    for (; i + 8 <= bytes; i += 8) {
+      uint64_t word;
+      std::memcpy(&word, b + i, 8);
+      h = (h ^ word) * 1099511628211ull;
+    }
+    for (; i < bytes; ++i) h = (h ^ b[i]) * 1099511628211ull;
+    h = (h ^ uint64_t(bytes)) * 1099511628211ull;
+  };
+  for (const Param& p : params.all()) {
+    add(p.name.data(), p.name.size());
+    add(p.value.data(), p.value.size() * sizeof(float));
+  }
+  for (const Mesh& m : meshes) {
+    add(m.positions.data(), m.positions.size() * sizeof(Vec3f));
+    add(m.indices.data(), m.indices.size() * sizeof(uint32_t));
+    add(m.normals.data(), m.normals.size() * sizeof(Vec3f));
+    add(m.uvs.data(), m.uvs.size() * sizeof(Vec2f));
+    add(m.colors.data(), m.colors.size() * sizeof(Vec3f));
+  }
+  return h;
+}
+
+void require_same_scene(const Scene& scene) {
+  dist::require_same(scene.content_hash(),
+                     "the ranks loaded different scenes from the same command: a file the scene refers to (a texture, "
+                     "mesh or grid) differs between their machines (every rank must read the same files)");
 }
 
 }  // namespace bl

@@ -158,6 +158,10 @@ struct Scene {
   // gap without crossing a boundary and then carries the medium on to infinity (as in Mitsuba 3).
   // One warning line per such medium.
   std::vector<std::string> open_medium_warnings() const;
+  // A hash of what the scene holds: every parameter's name and values (textures, grids,
+  // radiances, poses) and every mesh's vertex arrays and indices, so whatever files they came
+  // from. FNV-1a over the bytes, the same on every machine (MPI ranks compare it).
+  uint64_t content_hash() const;
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }

@@ -19,6 +19,12 @@ std::unique_ptr<Scene> load_xml_scene(const std::string& path);
 // errors name `path` (the XML loader builds its scene this way).
 std::unique_ptr<Scene> build_json_scene(const nlohmann::json& root, const std::string& path);
 
+// Under MPI, requires every rank to have loaded the same content (Scene::content_hash; the
+// command line and the files it names are compared at start-up, not the textures, meshes and
+// grids a scene refers to): one agreed line, exit 2, where they differ. A collective operation:
+// call it on every rank at the same point. Nothing on one process.
+void require_same_scene(const Scene& scene);
+
 // Triangle meshes of every primitive of a glTF file's default scene, node transforms applied,
 // then `to_world`. Used by the `gltf` shape type, which takes its material from the JSON scene:
 // the file's materials and vertex colours (COLOR_0, part of a glTF material's base colour) are

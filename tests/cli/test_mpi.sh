@@ -42,6 +42,9 @@ py=python3
 [ -x /usr/bin/python3 ] && py=/usr/bin/python3
 . "$here/floor_scene.sh"
 write_floor_scene 72  # 72×72: 25 tiles of 16×16, the last row and column partial
+# A copy of the scene for a second "node" whose texture start.exr is stale (different content).
+mkdir -p stale && cp scene.json truth.exr stale/ && cp truth.exr stale/start.exr
+stale_line="backlight: the ranks loaded different scenes from the same command: a file the scene refers to (a texture, mesh or grid) differs between their machines (every rank must read the same files)"
 
 # --- render: bitwise for R = 1, 2, 4 -------------------------------------------------------------
 "$bin" render scene.json --spp 4 --threads 1 -q -o r1.exr 2> /dev/null || fail "render on one process"
@@ -129,6 +132,14 @@ JSON
 job o1 6 3 > o1.json
 job o2 6 3 > o2.json
 "$bin" optimize o1.json --threads 1 --quiet 2> o1.log || fail "optimize on one process: $(tail -n 2 o1.log)"
+# A texture that differs on one rank's "node" (see "Ranks started with different commands" below).
+job ostale 2 1 > ostale.json
+cp ostale.json stale/
+out=$(mpirun -q --oversubscribe -n 1 "$bin" optimize ostale.json --threads 1 --quiet : \
+  -n 1 -wdir stale "$bin" optimize ostale.json --threads 1 --quiet 2>&1)
+code=$?
+[ $code -eq 2 ] && [ "$out" = "$stale_line" ] || fail "ranks loading different textures (optimize): exit $code, printed: $out"
+[ ! -e ostale ] && [ ! -e stale/ostale ] || fail "ranks loading different textures (optimize) wrote output"
 mpi 2 optimize o2.json --threads 1 --quiet 2> o2.log || fail "optimize on 2 ranks: $(tail -n 2 o2.log)"
 close() {  # close A B: the float files agree to 1e-5
   "$py" - "$1" "$2" <<'PY'
@@ -188,6 +199,16 @@ out=$(mpirun -q --oversubscribe -n 1 "$bin" render scene.json --spp 2 --threads 
   -n 1 -wdir other "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr 2>&1)
 code=$?
 [ $code -eq 2 ] || fail "ranks reading different copies of scene.json: exit $code, printed: $out"
+# The same command and scene file, but a texture the scene refers to differs on one "node" (the
+# files a scene names are not on the command line): the two ranks rendered their tiles with
+# different textures into one image, exit 0. Compared after loading (what every rank loaded):
+# one line, exit 2, nothing written; for render here, for optimize (the job loads the scene
+# itself) with the optimize tests above.
+out=$(mpirun -q --oversubscribe -n 1 "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr : \
+  -n 1 -wdir stale "$bin" render scene.json --spp 2 --threads 1 -q -o mix.exr 2>&1)
+code=$?
+[ $code -eq 2 ] && [ "$out" = "$stale_line" ] || fail "ranks loading different textures (render): exit $code, printed: $out"
+[ ! -e mix.exr ] || fail "ranks loading different textures wrote mix.exr"
 
 # A gradient that overflows float (environment radiance 1e30; the separate loss and adjoint passes
 # of adjoint_spp ≠ spp): one process ran on with NaN parameters and exit 0, two ranks the same or,
