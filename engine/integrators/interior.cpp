@@ -197,6 +197,17 @@ bool albedo_slope(const Scene& scene, const PathVertex& v, const Vec3f& radiance
 }
 
 // Pulls one path's derivatives back from its last vertex to the camera.
+// Whether a factor's logarithm, recomputed in double, is finite. Where it is not, the float
+// primal took the configuration for light transport by rounding alone: a light sample from a
+// point on the emitter's own plane (a two-sided emitter's reflective back: cos_y exactly 0 here,
+// a contribution of ~1e-14 there), or a grazing direction whose cosine changed sign. Such a
+// contribution is rounding noise with no derivative: nothing is added for it (its NaN made the
+// whole gradient of a moving two-sided light not finite on most seeds).
+template <class D>
+bool finite_log(const D& l) {
+  return std::isfinite(value_of(l));
+}
+
 void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
                    const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
                    const std::vector<int>& slot, bool interior, bool camera_moves, Accumulator& acc) {
@@ -230,7 +241,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
       const double g = inner(a, radiance - v.radiance_so_far);
       if (g != 0.0) {
         const auto l = log_continuation(variable<3>(h.m, 0), v.sign, v.next_direction);
-        adj_m += tangent(l, 0) * g;
+        if (finite_log(l)) adj_m += tangent(l, 0) * g;
       }
     }
     if (interior && moves && v.escape) {
@@ -238,7 +249,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
       if (g != 0.0) {
         const double p_light = select * double(scene.environment.pdf(Vec3f(v.next_direction)));
         const auto l = log_environment_hit_weight(variable<3>(h.m, 0), v.sign, v.next_direction, p_light);
-        adj_m += tangent(l, 0) * g;
+        if (finite_log(l)) adj_m += tangent(l, 0) * g;
       }
     }
     if (interior && moves && v.light == 2) {
@@ -246,7 +257,7 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
       if (g != 0.0) {
         const double p_light = select * double(scene.environment.pdf(Vec3f(v.light_direction)));
         const auto l = log_environment_sample(variable<3>(h.m, 0), v.sign, v.light_direction, p_light);
-        adj_m += tangent(l, 0) * g;
+        if (finite_log(l)) adj_m += tangent(l, 0) * g;
       }
     } else if (interior && v.light == 1 &&
                (moves || slot[size_t(scene.area_emitters[size_t(v.light_emitter)].mesh)] >= 0)) {
@@ -259,9 +270,11 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
         const Vec3<D> qd[3] = {variable<16>(q.p[0], 6), variable<16>(q.p[1], 9), variable<16>(q.p[2], 12)};
         const D l = log_light_sample(variable<16>(h.x, 0), variable<16>(h.m, 3), v.sign, qd, v.light_b1, v.light_b2,
                                      D::variable(std::log(double(e.total_area)), 15), select);
-        adj_x += tangent(l, 0) * g;
-        adj_m += tangent(l, 3) * g;
-        add_to_emitter(acc, slot, e.mesh, v.light_emitter, q, l, 6, g);
+        if (finite_log(l)) {
+          adj_x += tangent(l, 0) * g;
+          adj_m += tangent(l, 3) * g;
+          add_to_emitter(acc, slot, e.mesh, v.light_emitter, q, l, 6, g);
+        }
       }
     }
     if (interior && moves && v.emitter_hit && k > 0) {
@@ -273,10 +286,12 @@ void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, cons
         const D l = log_emitter_hit_weight(variable<19>(hits[size_t(k - 1)].m, 0), path[size_t(k - 1)].sign,
                                            v.direction, variable<19>(v.origin, 3), variable<19>(h.x, 6), pd,
                                            D::variable(std::log(double(e.total_area)), 18), select);
-        carry_m_prev += tangent(l, 0) * g;
-        adj_origin += tangent(l, 3) * g;
-        adj_x += tangent(l, 6) * g;
-        add_to_emitter(acc, slot, v.mesh, mesh.emitter, c, l, 9, g);
+        if (finite_log(l)) {
+          carry_m_prev += tangent(l, 0) * g;
+          adj_origin += tangent(l, 3) * g;
+          adj_x += tangent(l, 6) * g;
+          add_to_emitter(acc, slot, v.mesh, mesh.emitter, c, l, 9, g);
+        }
       }
     }
 
