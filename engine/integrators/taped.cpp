@@ -50,9 +50,10 @@ namespace {
 // Bytes the tape costs per entry: the entry itself plus the adjoint slot of the reverse sweep.
 constexpr size_t kBytesPerEntry = sizeof(TapeEntry) + sizeof(float);
 
+// "12 MB", or "0.001 MB" below one (a budget of 1KB was "0 MB").
 std::string megabytes(double bytes) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, "%.0f MB", bytes / 1e6);
+  std::snprintf(buf, sizeof buf, bytes < 1e6 ? "%.3g MB" : "%.0f MB", bytes / 1e6);
   return buf;
 }
 

@@ -495,6 +495,9 @@ expect_error grad_memory_budget_syntax "--memory-budget" "lots" -- \
 # Without -q: a progress line left behind on stderr would break the one-line contract.
 expect_error taped_memory_budget "re:[0-9]+ MB" "budget" "re:budget of 1 MB" -- \
   grad "$cornell" --resolution 64x64 --target t64.exr --method taped --memory-budget 1MB --out g_err9
+# A budget under a megabyte is stated as such (it was "the memory budget of 0 MB").
+expect_error taped_memory_budget_small "budget of 0.001 MB" -- \
+  grad "$small" --spp 1 --target t16.exr --method taped --memory-budget 1KB --out g_err9b -q
 expect_error check_unknown_param "nosuch" "unknown parameter" -- check "$small" --spp 1 --target t16.exr --param nosuch
 expect_error check_directions "--directions" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 0 --rr-depth 0
