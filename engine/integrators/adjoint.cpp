@@ -36,6 +36,7 @@ namespace {
 //    −⟨δ, contribution⟩/(σ̄ − σ_t), found by tracking the same ray again with the same numbers.
 struct ReplayObserver {
   static constexpr bool kActive = true;
+  static constexpr bool kZeroChannels = false;
   void surface(int, const Ray&, const Hit&, const SurfacePoint&) {}
   const Scene& scene;
   GradientAccumulator& grads;
@@ -47,6 +48,10 @@ struct ReplayObserver {
   bool media_grads = true;  // whether shadow rays through media carry derivatives
   // The tentative collisions of the shadow ray being tracked (per-thread scratch, reused).
   std::vector<ShadowPoint>* shadow_points = nullptr;
+  // That run's ZeroChannels radiance: what the rest of the path carries in a channel from its
+  // first zero factor on, that factor taken as 1 (the derivative at that vertex).
+  Vec3f zero_channel_radiance{0.f};
+  ZeroChannelMask zero_mask;
 
   void begin_shadow() { shadow_points->clear(); }
   void shadow_point(const ShadowPoint& p) {
@@ -139,8 +144,13 @@ struct ReplayObserver {
                      const Vec3f& radiance_before, const Vec3f& radiance_after_nee) {
     flush_real();
     const Vec3f rest = total_radiance - radiance_before;
+    bool first_zero[3];
+    zero_mask.mark(albedo, first_zero);
     Vec3f adjoint;
-    for (int c = 0; c < 3; ++c) adjoint[c] = albedo[c] != 0.f ? delta[c] * rest[c] / albedo[c] : 0.f;
+    for (int c = 0; c < 3; ++c)
+      adjoint[c] = albedo[c] != 0.f ? delta[c] * rest[c] / albedo[c]
+                   : first_zero[c]  ? delta[c] * zero_channel_radiance[c]
+                                    : 0.f;
     m.backprop_albedo(scene.params, x, adjoint, grads);
     const float continuation = dot(delta, total_radiance - radiance_after_nee);
     if (continuation != 0.f) {
@@ -153,10 +163,15 @@ struct ReplayObserver {
   }
   void scatter(const VertexRef& v, const Vec3f& wi, const Vec3f& f, float, float, const Vec3f&,
                const Vec3f& radiance_so_far, int, const Ray&) {
+    bool first_zero[3];
+    zero_mask.mark(f, first_zero);  // at every vertex, whether or not it wants a gradient
     if (!v.material->wants_grad(grads)) return;
     const Vec3f radiance_to_come = total_radiance - radiance_so_far;
     Vec3f adjoint;
-    for (int c = 0; c < 3; ++c) adjoint[c] = f[c] != 0.f ? delta[c] * radiance_to_come[c] / f[c] : 0.f;
+    for (int c = 0; c < 3; ++c)
+      adjoint[c] = f[c] != 0.f     ? delta[c] * radiance_to_come[c] / f[c]
+                   : first_zero[c] ? delta[c] * zero_channel_radiance[c]
+                                   : 0.f;
     add_bsdf_adjoint(v, wi, adjoint);
   }
 };
@@ -166,6 +181,7 @@ struct ReplayObserver {
 // Emission and NEE terms are local and handled exactly as in replay.
 struct RadiativeObserver {
   static constexpr bool kActive = true;
+  static constexpr bool kZeroChannels = false;
   void surface(int, const Ray&, const Hit&, const SurfacePoint&) {}
   const Scene& scene;
   GradientAccumulator& grads;
@@ -221,7 +237,7 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
   // Per-thread scratch for one pixel's samples: radiance and shadow-ray answers of each (reused
   // from pixel to pixel; nothing is allocated per sample or per vertex).
   struct SampleRecord {
-    Vec3f radiance;
+    Vec3f radiance, zero_channel_radiance;  // the latter: ZeroChannels (path.h)
     VisibilityBits visibility;
     int last_site = 0;
   };
@@ -265,6 +281,7 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
                 recorder.sites = o.replay_whole_paths ? nullptr : &sites;
                 records[size_t(s)].radiance = trace_path<float>(scene, packet.start(k), sampler, recorder);
                 records[size_t(s)].visibility = recorder.bits;
+                records[size_t(s)].zero_channel_radiance = recorder.zero_channel_radiance;
                 records[size_t(s)].last_site =
                     o.replay_whole_paths ? std::numeric_limits<int>::max() : recorder.last_site;
                 sum += Vec3d(records[size_t(s)].radiance);
@@ -297,7 +314,8 @@ PassStats backward(Scene& scene, const PassOptions& o, AdjointMethod method, con
                                         record.visibility,
                                         record.last_site,
                                         media_grads,
-                                        &thread_scratch.shadow_points};
+                                        &thread_scratch.shadow_points,
+                                        record.zero_channel_radiance};
                   trace_path<float>(scene, packet.start(k), sampler, replay);
                   replay.flush();
                 } else {

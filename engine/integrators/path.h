@@ -54,6 +54,10 @@ struct ShadowPoint {
 // Observer that ignores everything (primal and taped modes).
 struct NoObserver {
   static constexpr bool kActive = false;
+  // Whether the loop tracks zero channels (ZeroChannels below; prb's first run) and hands their
+  // radiance to zero_channels(radiance_after_first_zero) at the end of the path.
+  static constexpr bool kZeroChannels = false;
+  void zero_channels(const Vec3f&) {}
   // Media (see trace_path): a tentative collision of delta tracking; a medium vertex after its
   // light sample and phase sample; the light sample of a medium vertex; the transmittance of a
   // surface vertex's shadow ray.
@@ -139,6 +143,50 @@ inline DerivativeSites derivative_sites(const Scene& scene, const GradientAccumu
   return d;
 }
 
+// The radiance a path would carry in a colour channel had its first zero factor in that channel
+// been 1. prb's replay takes a vertex's derivative as δ · (radiance still to come) / f per
+// channel, which says nothing where f (a BSDF sample's value, a medium's albedo) is 0 in a
+// channel: an albedo channel at exactly 0 (an 8-bit texture, a bound the optimizer projected
+// onto) lost its whole bounce term (25% of a Cornell wall's gradient). The derivative there is
+// δ · (what the rest of the path carries with that factor replaced by 1); only the first zero per
+// channel matters (after a second one the true throughput before it is already 0). The first run
+// tracks that throughput β̃ and radiance L̃ per channel from each channel's first zero on (the
+// same factors as β, the zero replaced by 1) and the replay uses L̃ at that vertex. Paths with no
+// zero channel (almost all) pay one untaken branch per event.
+struct ZeroChannels {
+  bool active = false;  // some channel has met its first zero
+  bool zeroed[3] = {false, false, false};
+  Vec3f beta{0.f}, radiance{0.f};  // β̃, L̃ (0 in channels not zeroed yet)
+
+  // A factor `value` about to multiply β at a vertex whose throughput so far is `beta_now`:
+  // channels at their first zero start β̃ from `beta_now`, and the factor for β̃ is returned
+  // (the zeros replaced by 1 in those channels).
+  Vec3f first_zeros(const Vec3f& value, const Vec3f& beta_now) {
+    Vec3f factor = value;
+    for (int c = 0; c < 3; ++c)
+      if (value[c] == 0.f && !zeroed[c]) {
+        zeroed[c] = true;
+        active = true;
+        beta[c] = beta_now[c];
+        factor[c] = 1.f;
+      }
+    return factor;
+  }
+};
+
+// Replay side of ZeroChannels: whether channel c of `value` is that channel's first zero on the
+// path (the same vertices the first run found, met in the same order).
+struct ZeroChannelMask {
+  bool zeroed[3] = {false, false, false};
+  // Marks the first zeros of `value`; first[c] says which channels they were.
+  void mark(const Vec3f& value, bool first[3]) {
+    for (int c = 0; c < 3; ++c) {
+      first[c] = value[c] == 0.f && !zeroed[c];
+      zeroed[c] = zeroed[c] || value[c] == 0.f;
+    }
+  }
+};
+
 // Shadow-ray answers of one path, one bit per surface vertex. The adjoint pass records them while
 // computing a sample's radiance and hands them to the replay of the same sample: the answers are a
 // function of the same random numbers, so the replay need not cast its shadow rays again.
@@ -150,9 +198,12 @@ struct VisibilityBits {
 // First run of a path in the adjoint pass: no events; shadow-ray answers recorded, and the last
 // vertex at which a derivative event can be non-zero (0: none), where the replay may stop.
 struct VisibilityRecorder : NoObserver {
+  static constexpr bool kZeroChannels = true;
   const DerivativeSites* sites = nullptr;  // null: every vertex counts
   VisibilityBits bits;
   int last_site = 0;
+  Vec3f zero_channel_radiance{0.f};  // ZeroChannels::radiance at the end of the path
+  void zero_channels(const Vec3f& radiance) { zero_channel_radiance = radiance; }
   void reached(int vertex, int site) {
     if (!sites || sites->at(site)) last_site = vertex;
   }
@@ -417,6 +468,9 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
   const int area_count = int(scene.area_emitters.size());
   const bool has_emitters = area_count > 0 || scene.environment.present;
   Spectrum<T> radiance(T(0.f)), beta(T(1.f));
+  [[maybe_unused]] ZeroChannels zc;  // Observer::kZeroChannels only
+  constexpr bool kZero = Observer::kZeroChannels;
+  static_assert(!kZero || std::is_same_v<T, float>, "zero channels are tracked by the float first run only");
   Ray ray = start.ray;
   float mis_bsdf_pdf = start.bsdf_pdf;
   int medium = start.medium;
@@ -466,6 +520,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             }
           });
       beta = beta * ff.weight;
+      if constexpr (kZero)
+        if (zc.active) zc.beta = zc.beta * value_of(ff.weight);
       if (ff.collided) {
         observer.reached(vertex, kSiteMedium);
         if (st.max_depth >= 0 && vertex >= st.max_depth) break;
@@ -474,6 +530,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         const Spectrum<T> albedo = med.albedo_at<T>(params, p);
         const HgParams<T> phase = med.phase<T>(params);
         const HgParams<float> phase_detached{value_of(phase.g)};
+        [[maybe_unused]] Vec3f zc_albedo;  // the albedo for β̃ (ZeroChannels)
+        if constexpr (kZero) zc_albedo = zc.first_zeros(value_of(albedo), value_of(beta));
 
         if (has_emitters && observer.nee_may_contribute(vertex)) {
           const MediumLightSample ls = medium_light_sample(
@@ -489,6 +547,10 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
               const Spectrum<T> contribution =
                   (real_light ? beta : beta * ff.real) * albedo * emitted * (f * tr * ls.w_over_pdf);
               radiance += contribution;
+              if constexpr (kZero)
+                if (zc.active)
+                  zc.radiance +=
+                      (real_light ? zc.beta : zc.beta * ff.real) * zc_albedo * emitted * (f * tr * ls.w_over_pdf);
               if constexpr (Observer::kActive) {
                 const EmissionRef eref{ls.chosen < area_count ? ls.chosen : -1, es.uv, es.wi};
                 const Vec3f emitter_weight =
@@ -504,6 +566,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         if (!(ps.pdf > 0.f)) break;
         // p / pdf is 1 in value; on T it carries the derivative of the phase function.
         beta = beta * ff.real * albedo * (hg_eval(phase, wi_phase, ps.wo) / ps.pdf);
+        if constexpr (kZero)
+          if (zc.active) zc.beta = zc.beta * ff.real * zc_albedo * (hg_eval(phase, wi_phase, ps.wo) / ps.pdf);
         if constexpr (Observer::kActive)
           observer.medium_vertex(med, p, wi_phase, ps.wo, value_of(albedo), radiance_so_far, value_of(radiance));
         float q = 1.f;
@@ -511,6 +575,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
           q = std::min(max_component(value_of(beta)), 0.95f);
           if (!(sampler.get(Dim::at(vertex, Dim::kRoulette)) < q)) break;
           beta = beta * (1.f / q);
+          if constexpr (kZero) zc.beta = zc.beta * (1.f / q);
         }
         ray.origin = p;  // in place, member by member (see the surface vertex below)
         ray.direction = ps.wo;
@@ -533,6 +598,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
                             : 1.f;
         Spectrum<T> contribution = beta * scene.environment.eval<T>(params, look) * w;
         radiance += contribution;
+        if constexpr (kZero)
+          if (zc.active) zc.radiance += zc.beta * scene.environment.eval<T>(params, look) * w;
         if constexpr (Observer::kActive)
           observer.emission({-1, {}, ray.direction}, value_of(beta) * w, value_of(contribution));
       }
@@ -574,6 +641,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
               mis_bsdf_pdf, select_pdf * emitter.pdf(travelled + hit.t, std::abs(dot(sp.geometric_normal, wo_world))));
         Spectrum<T> contribution = beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
         radiance += contribution;
+        if constexpr (kZero)
+          if (zc.active) zc.radiance += zc.beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
         if constexpr (Observer::kActive)
           observer.emission({mesh.emitter, sp.uv, {}}, value_of(beta) * w, value_of(contribution));
       }
@@ -614,6 +683,8 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
             float w_over_pdf = power_heuristic(light_pdf, bsdf_detached.pdf(wo, wi)) / light_pdf;
             Spectrum<T> contribution = beta * f * emitted * (tr * w_over_pdf);
             radiance += contribution;
+            if constexpr (kZero)
+              if (zc.active) zc.radiance += zc.beta * f * emitted * (tr * w_over_pdf);
             if constexpr (Observer::kActive) {
               Vec3f b = value_of(beta) * (value_of(tr) * w_over_pdf);
               observer.nee(vref, wi, eref, b * value_of(emitted), b * value_of(f), value_of(contribution));
@@ -632,6 +703,10 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (is_zero(value_of(f))) break;
     const Vec3f beta_before = value_of(beta);
     beta = beta * f * (1.f / bs.pdf);
+    if constexpr (kZero) {
+      const Vec3f zc_f = zc.first_zeros(f, beta_before);
+      if (zc.active) zc.beta = zc.beta * zc_f * (1.f / bs.pdf);
+    }
 
     // Russian roulette on the detached throughput (Mitsuba's rule: after the BSDF sample at
     // surface vertex k ≥ rr_depth, continue with q = min(max β, 0.95)).
@@ -640,6 +715,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
       q = std::min(max_component(value_of(beta)), 0.95f);
       if (!(sampler.get(Dim::at(vertex, Dim::kRoulette)) < q)) break;
       beta = beta * (1.f / q);
+      if constexpr (kZero) zc.beta = zc.beta * (1.f / q);
     }
 
     const Vec3f wi_world = frame.to_world(bs.wi);
@@ -657,6 +733,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     travelled = 0.f;
     ++vertex;
   }
+  if constexpr (kZero) observer.zero_channels(zc.radiance);
   return radiance;
 }
 

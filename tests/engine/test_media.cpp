@@ -360,15 +360,21 @@ TEST_CASE("prb equals the taped oracle on the same random numbers, media and sur
   // take the same derivative-only light samples and leave them out of the real collisions' terms.
   // Variants: 0 grid density, 1 with an albedo grid, 2 with light derivatives (f = 0.3), 3 a
   // homogeneous medium, 4 the same with light derivatives (f = 0.9: σ_t is σ̄ / 1.25 everywhere,
-  // so only f > 0.8 takes them).
+  // so only f > 0.8 takes them), 5 the grid with colour channels at exactly 0 in the medium's
+  // albedo (green) and the wall's (red): prb's replay divided by the albedo and dropped those
+  // channels' terms (35% of a green albedo gradient; ZeroChannels, path.h).
   std::vector<float> density_without_light;  // variant 0's (3's) prb density gradient
-  for (int variant = 0; variant < 5; ++variant) {
+  for (int variant = 0; variant < 6; ++variant) {
     FogOptions o;
     o.albedo_grid = variant == 1;
     o.light_derivatives = variant == 2 ? 0.3f : variant == 4 ? 0.9f : 0.f;
-    o.homogeneous = variant >= 3 ? 0.8f : 0.f;
+    o.homogeneous = variant == 3 || variant == 4 ? 0.8f : 0.f;
     o.resolution = 16;
     auto scene = fog_scene(o);
+    if (variant == 5) {
+      scene->params[scene->params.find("fog.albedo")].value = {0.8f, 0.f, 0.4f};
+      scene->params[scene->params.find("wall.albedo")].value = {0.f, 0.5f, 0.6f};
+    }
     const Image a = weights(16, 16);
     const std::vector<std::string> names = {"fog.density", "fog.albedo",  "fog.scale",
                                             "fog.g",       "wall.albedo", "light.radiance"};
