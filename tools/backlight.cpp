@@ -322,6 +322,12 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                  "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
                  "on the mean over many seeds (--seeds N), not per seed.\n",
                  c.param.c_str());
+  if (c.seeds > 1 && c.adjoint_image.empty())
+    std::fprintf(stderr,
+                 "note: with a loss, the mean over seeds of same-seed differences is the derivative of the expected\n"
+                 "loss; the adjoint's mean is that only for parameters that do not move sampling (for roughness,\n"
+                 "density, geometry or any albedo under roulette the loss gradient correlates with the sampling\n"
+                 "terms). To test those in expectation, use --adjoint-image (a linear functional).\n");
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed, c.seeds);
   // Both sides exactly 0 in every direction: the parameter does not reach this image (a camera
   // that is not rendered, a material no visible path meets). That compares nothing: not a pass.
