@@ -499,11 +499,16 @@ Mesh make_sphere(int segments) {
   Mesh m;
   const int rings = segments / 2;
   const float pi = 3.14159265358979f;
+  // The seam (u = 1) repeats u = 0 and each pole row one point, bit for bit (sin(2π) and sin(π) in
+  // float are not 0, and 0 · a negative cosine is −0): a medium bounded by a sphere was "not
+  // closed" (its vertices weld by bitwise position).
   for (int j = 0; j <= rings; ++j) {
     const float v = float(j) / float(rings), theta = pi * (1.f - v);  // v = 0 at the south pole (−z)
+    const bool pole = j == 0 || j == rings;
     for (int i = 0; i <= segments; ++i) {
-      const float u = float(i) / float(segments), phi = 2.f * pi * u;
-      const Vec3f n{std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
+      const float u = float(i) / float(segments), phi = i == segments ? 0.f : 2.f * pi * u;
+      const Vec3f n = pole ? Vec3f{0.f, 0.f, j == 0 ? -1.f : 1.f}
+                           : Vec3f{std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
       m.positions.push_back(n);
       m.normals.push_back(n);
       m.uvs.push_back({u, v});

@@ -22,6 +22,7 @@
 #include "engine/optimize/large_steps.h"
 #include "engine/optimize/optimizer.h"
 #include "engine/optimize/resample.h"
+#include "engine/scene/mesh_io.h"
 #include "engine/scene/scene_load.h"
 #include "engine/scene/volume_io.h"
 #include "test_scenes.h"
@@ -915,6 +916,26 @@ TEST_CASE("a medium whose inside is not closed is warned about", "[media]") {
   REQUIRE(warnings.size() == 1);
   CHECK_THAT(warnings[0],
              Catch::Contains("(shapes 'face0', 'face1', 'face2', 'face3', 'face4') is not closed: 4 of 17"));
+}
+
+// The built-in sphere as a medium's boundary is closed: its seam column and pole rows were computed
+// with float sin(2π) and sin(π), not 0, so they did not weld with the points they repeat ("not
+// closed: 190 of 6047 edges" at 64 segments). Also at odd segment counts.
+TEST_CASE("the built-in sphere is closed", "[media]") {
+  for (int segments : {4, 7, 64, 512}) {
+    auto scene = fog_scene();
+    for (Mesh& m : scene->meshes)
+      if (m.name == "box") {
+        const Mesh sphere = make_sphere(segments);
+        m.positions = sphere.positions;
+        m.positions.push_back(Vec3f(0.f));  // Embree's padding element
+        m.normals = sphere.normals;
+        m.uvs = sphere.uvs;
+        m.indices = sphere.indices;
+      }
+    INFO(segments << " segments");
+    CHECK(scene->open_medium_warnings() == std::vector<std::string>{});
+  }
 }
 
 // A camera's declared medium against the geometry: declared in the fog while outside its box (the
