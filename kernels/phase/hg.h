@@ -38,12 +38,19 @@ T hg_eval(const HgParams<T>& p, const Vec3f& wi, const Vec3f& wo) {
 }
 
 // Exact inversion of the CDF of cos θ = d_in·wo (θ between the propagation directions):
-// cos θ = (1 + g² − ((1 − g²)/(1 − g + 2gξ))²) / (2g), uniform in [−1, 1] as g → 0.
+// cos θ = (1 + g² − ((1 − g²)/(1 − g + 2gξ))²) / (2g), uniform in [−1, 1] as g → 0. For small
+// |g| that difference cancels in float (an error of ~1e-7/g); below 0.1 the same value without
+// the division by g, (2a + g(a² + 3) + 2g²a + g³(a² − 1)) / (2t²) with a = 2ξ − 1, t = 1 + ga,
+// whose own cancellation grows as |g| → 1. (Drawing uniformly for |g| < 1e-3 while returning the
+// HG pdf weighted the samples by up to 1 ± 3g.)
 inline PhaseSample hg_sample(const HgParams<float>& p, const Vec3f& wi, Vec2f u) {
   const float g = hg_clamp_g(p.g);
   float cos_theta;
-  if (std::abs(g) < 1e-3f) {
+  if (g == 0.f) {
     cos_theta = 1.f - 2.f * u.x;
+  } else if (std::abs(g) < 0.1f) {
+    const float a = 2.f * u.x - 1.f, t = 1.f + g * a;
+    cos_theta = (2.f * a + g * (a * a + 3.f) + 2.f * g * g * a + g * g * g * (a * a - 1.f)) / (2.f * t * t);
   } else {
     const float s = (1.f - g * g) / (1.f - g + 2.f * g * u.x);
     cos_theta = (1.f + g * g - s * s) / (2.f * g);

@@ -47,6 +47,26 @@ TEST_CASE("HG sampling matches its pdf (chi-square over the sphere)", "[phase][c
     }
 }
 
+// Sampling inverts the CDF of μ = cos θ (θ between d_in and wo): μ(ξ) = (1 + g² − s²)/(2g) with
+// s = (1 − g²)/(1 − g + 2gξ), here in double. For 0 < |g| < 1e-3 the sampler drew uniformly
+// while returning the HG pdf (μ off by up to ~g: 5e-4), and in float the formula loses ~1e-7/g to
+// cancellation (7e-5 in μ at g = 2e-3); both fail this check.
+TEST_CASE("HG sampling inverts its CDF, small g included", "[phase]") {
+  const Vec3f wi{0.f, 0.f, -1.f};  // d_in = +z: cos θ = wo.z
+  for (float g : {-7e-4f, -1e-5f, 1e-4f, 5e-4f, 9.9e-4f, 2e-3f, -0.03f, 0.099f, 0.1f, 0.3f, -0.8f, 0.95f}) {
+    double worst = 0;
+    for (int k = 1; k < 200; ++k) {
+      const float xi = float(k) / 200.f;
+      const PhaseSample sample = hg_sample({g}, wi, {xi, 0.25f});
+      const double gd = g, s = (1 - gd * gd) / (1 - gd + 2 * gd * double(xi));
+      const double mu = (1 + gd * gd - s * s) / (2 * gd);
+      worst = std::max(worst, std::abs(double(sample.wo.z) - mu));
+    }
+    INFO("g = " << g << ": largest |cos θ(ξ) − exact| = " << worst);
+    CHECK(worst < 1e-5);
+  }
+}
+
 TEST_CASE("HG integrates to one, is reciprocal, and g > 0 scatters forward", "[phase]") {
   for (double g : {-0.95, -0.7, -0.2, 0.0, 0.3, 0.9, 0.95}) {
     // Simpson's rule over μ on a grid fine enough for g = ±0.95's peak.
