@@ -106,16 +106,16 @@ void Scene::prepare_sampling_only() {
     if (!m.grid) continue;
     const GridSize g = grid_size(params[m.density]);
     const Vec3f size = m.bbox_max - m.bbox_min;
-    const Vec3f block{size.x * float(std::min(m.block, g.x)) / float(g.x),
-                      size.y * float(std::min(m.block, g.y)) / float(g.y),
-                      size.z * float(std::min(m.block, g.z)) / float(g.z)};
-    const double depth = double(majorant) * double(length(block));
+    // In double: a box 1e30 wide made the block's diagonal, and the step count, inf.
+    const double bx = double(size.x) * std::min(m.block, g.x) / g.x, by = double(size.y) * std::min(m.block, g.y) / g.y,
+                 bz = double(size.z) * std::min(m.block, g.z) / g.z;
+    const double depth = double(majorant) * std::sqrt(bx * bx + by * by + bz * bz);
     if (depth > limits::kOpticalDepth) {
       std::ostringstream s;
       s << source << ": medium '" << m.name << "': extinction up to " << majorant
         << " (density × scale × majorant headroom) makes ~" << depth
         << " tracking steps across one majorant block, beyond the limit of " << limits::kOpticalDepth
-        << " (an optically solid medium: lower its density or scale)";
+        << " (an optically solid medium: lower its density or scale, or the size of its box)";
       throw InputError(s.str());
     }
   }
@@ -382,7 +382,7 @@ void validate_param(const Param& p, const std::string& where) {
     if (v < p.lower || v > p.upper) {
       std::ostringstream s;
       s << where << ": parameter '" << p.name << "' element " << i << " = " << v << " is outside its valid range ["
-        << p.lower << ", " << p.upper << "]" << (v < 0 ? " (negative)" : "");
+        << p.lower << ", " << p.upper << "]" << (v < 0 && p.lower >= 0 ? " (negative)" : "");
       throw InputError(s.str());
     }
   }

@@ -427,6 +427,12 @@ expect_error medium_extinction_overflow "medium 'smoke'" "exceeds float's range"
 s["media"]["smoke"]["scale"] = 1e9; s["media"]["smoke"].pop("bbox")')" -o o.exr --spp 1 -q
 expect_error medium_optically_solid "medium 'smoke'" "one majorant block" "beyond the limit of 1e+06" -- \
   render vol/scene.json -o o.exr --spp 1 -q --set smoke.scale=1e20
+# A box 2e30 wide: the block's diagonal overflowed float and the message said "~inf tracking steps".
+expect_error medium_huge_box "medium 'smoke'" "re:~[0-9.e+]+ tracking steps" "size of its box" -- \
+  render "$(vv hugebox 's["media"]["smoke"]["bbox"] = {"min": [-1e30, -1e30, -1e30], "max": [1e30, 1e30, 1e30]}')" -o o.exr -q
+# g outside (-0.999, 0.999) below 0 is not "(negative)": g may be negative.
+expect_error_now medium_g_range "smoke.g" "valid range" -- render vol/scene.json -o o.exr -q --set smoke.g=-1
+! grep -q "(negative)" "$tmp/err.medium_g_range" || fail "medium_g_range: g = -1 called negative: $(cat "$tmp/err.medium_g_range")"
 expect_error rb_with_media "scene.json" "rb does not support scenes with media" -- \
   grad vol/scene.json --method rb --spp 1 --adjoint-image "$repo/tests/data/mitsuba3-volume/adjoint.exr" --out g_rb -q
 
