@@ -250,6 +250,24 @@ xml_sensor='<sensor type="perspective"><float name="fov" value="40"/><film type=
 printf '<scene version="3.0.0">\n%s\n<bsdf type="conductor" id="g"/>\n<shape type="disk"/>\n</scene>\n' "$xml_sensor" >warn_then_fail.xml
 expect_error xml_warning_then_error "warn_then_fail.xml" "line 4" "unsupported shape type" -- \
   render warn_then_fail.xml -o o.exr -q
+# max_depth -1 with Russian roulette off in a closed room: the throughput underflows to 0 (albedo
+# 0.01: after ~25 bounces) and the path went on for ever (render and grad never finished). Now it
+# ends when nothing more can reach the film.
+cat > closed_room.json <<'JSON'
+{"integrator": {"spp": 1, "max_depth": -1, "rr_depth": 0},
+ "cameras": [{"name": "c", "origin": [0, 0, 0.5], "target": [0, 0, 0], "fov": 60, "resolution": [4, 4]}],
+ "materials": {"w": {"type": "diffuse", "albedo": [0.01, 0.01, 0.01]}},
+ "shapes": [{"name": "box", "type": "cube", "material": "w"},
+            {"name": "l", "type": "rectangle", "material": "w", "emitter": {"radiance": [1, 1, 1]},
+             "transform": {"scale": 0.2, "rotate": {"axis": [1, 0, 0], "angle": 90}, "translate": [0, 0.9, 0]}}]}
+JSON
+for args in "render closed_room.json -o closed_room.exr" "grad closed_room.json --adjoint-image t16.exr --out g_closed --resolution 16x16" \
+            "grad closed_room.json --adjoint-image t16.exr --out g_closed_t --resolution 16x16 --method taped"; do
+  rc=0
+  # shellcheck disable=SC2086
+  timeout 60 "$bin" $args -q --threads 1 > /dev/null 2> err.closed_room || rc=$?
+  [ $rc -eq 0 ] || fail "closed room, max_depth -1, rr_depth 0 ($args): exit $rc (124: did not finish): $(cat err.closed_room)"
+done
 # An emitter on a null-material shape: crossed without a vertex, its emission was left out (a lamp
 # 24% too dark in JSON, all black from XML). Refused, in both formats.
 printf '<scene version="3.0.0">\n%s\n<shape type="rectangle"><bsdf type="null"/><emitter type="area"><rgb name="radiance" value="3"/></emitter></shape>\n</scene>\n' "$xml_sensor" >null_emitter.xml
