@@ -796,7 +796,16 @@ int remove_stale_temporaries(const std::string& dir, bool recursive, const std::
   auto dead = [](const std::string& digits) {
     if (digits.size() > 9) return true;  // beyond any pid
     const pid_t pid = pid_t(std::stol(digits));
-    return pid > 0 && kill(pid, 0) != 0 && errno == ESRCH;
+    if (pid <= 0) return false;
+    if (kill(pid, 0) != 0) return errno == ESRCH;
+    // A zombie writes nothing more: a plot child killed with its parent (PR_SET_PDEATHSIG) stays
+    // one until someone reaps it, for ever under a container's init that does not (its
+    // temporary was left behind: test_optimize_crash failed now and then).
+    std::ifstream stat("/proc/" + digits + "/stat");
+    std::string line;
+    if (!std::getline(stat, line)) return false;
+    const size_t close = line.rfind(')');  // "pid (comm) state ...": comm may hold spaces
+    return close != std::string::npos && close + 2 < line.size() && (line[close + 2] == 'Z' || line[close + 2] == 'X');
   };
   int removed = 0;
   std::error_code ec;

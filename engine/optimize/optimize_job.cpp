@@ -1685,6 +1685,9 @@ class Job {
     write_image(out("compare.png"), compare);
     write_text_atomic(out("summary.json"), summary.dump(1) + "\n");
     write_report(c_.iterations, seconds, true);
+    // Again at the end: a process killed just before this run started (a plot child dying with
+    // its parent) may still have been alive when the start cleared the folder.
+    remove_stale_temporaries(c_.output);
     std::fprintf(stderr, "optimize: %d iterations in %.1f s, loss %.4g -> %.4g; results in %s\n", c_.iterations,
                  seconds, summary["initial_loss"].get<double>(), summary["final_loss"].get<double>(),
                  c_.output.c_str());

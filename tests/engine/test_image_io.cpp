@@ -2,6 +2,7 @@
 // bytes, never its name; names with a NUL byte and bytes no supported format claims are refused
 // with a one-line InputError before any OpenImageIO plugin sees them.
 #include <OpenImageIO/imageio.h>
+#include <sys/wait.h>
 #include <unistd.h>
 #include <zlib.h>
 #include <catch2/catch.hpp>
@@ -401,4 +402,34 @@ TEST_CASE("PFM: both byte orders, grey, bottom-up rows, short files", "[image][i
   CHECK(error_of(tmp("huge.pfm")).find("huge.pfm:") != std::string::npos);
   pfm("zero.pfm", "PF\n0 4\n-1.0\n", {1, 2, 3}, false);
   CHECK(error_of(tmp("zero.pfm")).find("zero.pfm: corrupt image (PFM header") != std::string::npos);
+}
+
+// Temporaries of processes that no longer write are removed; a zombie (a killed plot child that
+// nobody reaped: kill(pid, 0) still succeeds) counts as gone, a running process does not, nor do
+// names outside the pattern.
+TEST_CASE("stale temporaries: dead and zombie writers' files go, live writers' stay", "[image][io]") {
+  TempDir t;
+  const pid_t zombie = ::fork();
+  REQUIRE(zombie >= 0);
+  if (zombie == 0) ::_exit(0);
+  // Wait until the child has exited (a zombie: its /proc stat says Z), without reaping it.
+  for (int i = 0; i < 1000; ++i) {
+    std::ifstream stat("/proc/" + std::to_string(zombie) + "/stat");
+    std::string line;
+    std::getline(stat, line);
+    if (line.find(") Z") != std::string::npos) break;
+    ::usleep(1000);
+  }
+  const std::string mine = t(".a.tmp" + std::to_string(::getpid()) + ".png");
+  const std::string of_zombie = t(".b.tmp" + std::to_string(zombie) + ".png");
+  const std::string of_nobody = t(".c.tmp999999999.csv");
+  const std::string other = t("d.tmp1.png");
+  for (const auto& f : {mine, of_zombie, of_nobody, other}) std::ofstream(f) << "x";
+  CHECK(remove_stale_temporaries(t.dir.string()) == 2);
+  CHECK(fs::exists(mine));
+  CHECK(!fs::exists(of_zombie));
+  CHECK(!fs::exists(of_nobody));
+  CHECK(fs::exists(other));
+  int status = 0;
+  ::waitpid(zombie, &status, 0);
 }
