@@ -24,6 +24,10 @@ struct Param {
   // A shape's or camera's pose or vertex positions: differentiated only when named (the default
   // "all parameters" of a gradient run means all appearance parameters).
   bool geometry = false;
+  // An image parameter's colour space for 8-bit images set into it later (`--set`, an optimizer
+  // config's set/init): its texture's color_space ("linear": not sRGB-decoded; glTF
+  // metallic-roughness channels and environment maps are linear by default).
+  bool srgb = true;
   size_t tape_offset = 0;  // index of element 0 in the flat numbering used by the taped mode
 
   size_t size() const { return value.size(); }

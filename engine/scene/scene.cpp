@@ -463,7 +463,8 @@ void apply_override(Scene& scene, const std::string& assignment) {
     for (const Vec3f& v : m.positions) values.insert(values.end(), {v.x, v.y, v.z});
   } else {
     values.clear();
-    Image img = read_image(rhs, !p.is_image() ? false : true);
+    // 8-bit files in the parameter's own colour space (a linear roughness map was sRGB-decoded).
+    Image img = read_image(rhs, p.is_image() && p.srgb);
     if (!p.is_image() || img.width != p.width() || img.height != p.height())
       throw InputError(rhs + ": image is " + std::to_string(img.width) + "x" + std::to_string(img.height) +
                        " but parameter '" + name + "' has shape " + scene.params.shape_string(h));

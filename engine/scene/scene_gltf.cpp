@@ -994,6 +994,7 @@ std::unique_ptr<Scene> load_gltf_scene_unguarded(const std::string& path, std::v
   auto channel_param = [&](ChannelMap map, const std::string& name, float upper) {
     for (float& v : map.values) v = std::min(v, upper);
     TextureSlot slot = add_param(name, {map.height, map.width, 1}, std::move(map.values), 0.f, upper);
+    scene->params[slot.param].srgb = false;  // a linear texture's channel
     slot.bitmap = true;
     slot.wrap = map.wrap;
     return slot;

@@ -109,6 +109,7 @@ struct Loader {
       if (cs == "srgb" && img.from_float_file) img = read_image(path, false);  // float data is linear already
       int c = scalar ? 1 : 3;
       p.shape = {img.height, img.width, c};
+      p.srgb = cs != "linear";
       p.value.resize(size_t(img.width) * size_t(img.height) * size_t(c));
       for (size_t i = 0; i < img.pixel_count(); ++i)
         for (int k = 0; k < c; ++k)

@@ -250,6 +250,14 @@ xml_sensor='<sensor type="perspective"><float name="fov" value="40"/><film type=
 printf '<scene version="3.0.0">\n%s\n<bsdf type="conductor" id="g"/>\n<shape type="disk"/>\n</scene>\n' "$xml_sensor" >warn_then_fail.xml
 expect_error xml_warning_then_error "warn_then_fail.xml" "line 4" "unsupported shape type" -- \
   render warn_then_fail.xml -o o.exr -q
+# --set with an 8-bit image into a texture declared "linear" keeps that colour space (it was
+# sRGB-decoded whatever the texture said: a linear roughness 0.52 became 0.23). The render with
+# the texture replaced by its own file is the render without --set, bit for bit.
+oiiotool --pattern checker:width=2:height=2:color1=0.8,0.2,0.1:color2=0.1,0.5,0.8 8x8 3 -d uint8 -o "$tmp/lin8.png"
+linear_scene="$(v linear_wall 's["materials"]["wall"]["albedo"] = {"type": "bitmap", "file": "'"$tmp"'/lin8.png", "color_space": "linear"}')"
+expect_ok set_linear_a render "$linear_scene" -o "$tmp/lin_a.pfm" --spp 2 -q &&
+  expect_ok set_linear_b render "$linear_scene" -o "$tmp/lin_b.pfm" --spp 2 -q --set "wall.albedo=$tmp/lin8.png" &&
+  { cmp -s "$tmp/lin_a.pfm" "$tmp/lin_b.pfm" || fail "--set of a linear texture's own 8-bit file changed the render"; }
 # max_depth -1 with Russian roulette off in a closed room: the throughput underflows to 0 (albedo
 # 0.01: after ~25 bounces) and the path went on for ever (render and grad never finished). Now it
 # ends when nothing more can reach the film.
