@@ -162,22 +162,38 @@ inline void check_indices(const std::string& path, const nlohmann::json& doc) {
   });
 }
 
-// Material factors the specification bounds and tinygltf does not check: baseColorFactor in
-// [0, 1] (a texture would otherwise be scaled past 1 and clamped), emissiveFactor ≥ 0 (backlight
-// uses values above 1 as they are), alphaMode one of its three values and alphaCutoff ≥ 0.
+// Material factors the specification bounds and tinygltf does not check: baseColorFactor (4
+// numbers) in [0, 1] (a texture would otherwise be scaled past 1 and clamped), emissiveFactor (3)
+// ≥ 0 (backlight uses values above 1 as they are), metallicFactor and roughnessFactor numbers in
+// [0, 1], alphaMode one of its three values and alphaCutoff ≥ 0. A factor of another JSON type
+// (a string "0.2", an object) is refused: tinygltf silently used the default in its place (a
+// roughness "0.2" rendered as 1, "metallicFactor": "0" as a metal, emission "1 1 1" as none).
 inline void check_material_factors(const std::string& path, const nlohmann::json& doc) {
   for_each_object(doc, "materials", [&](size_t i, const nlohmann::json& material) {
     const std::string what = object_name("material", i, material);
-    auto numbers_in = [&](const nlohmann::json& parent, const char* key, double lo, double hi, const char* range) {
+    auto numbers_in = [&](const nlohmann::json& parent, const char* key, size_t count, double lo, double hi,
+                          const char* range) {
       const auto value = parent.find(key);
-      if (value == parent.end() || !value->is_array()) return;  // tinygltf reports a malformed one
+      if (value == parent.end()) return;
+      if (!value->is_array() || value->size() != count)
+        throw file_error(path, what + ": " + key + " must be an array of " + std::to_string(count) + " numbers, not " +
+                                   spelled(*value));
       for (const auto& v : *value)
         if (!v.is_number() || !(v.get<double>() >= lo && v.get<double>() <= hi))
           throw file_error(path, what + ": " + key + " values must be " + range + ", not " + spelled(*value));
     };
+    auto number_in_unit = [&](const nlohmann::json& parent, const char* key) {
+      const auto value = parent.find(key);
+      if (value != parent.end() && !(value->is_number() && value->get<double>() >= 0 && value->get<double>() <= 1))
+        throw file_error(path, what + ": " + key + " must be a number in [0, 1], not " + spelled(*value));
+    };
     const auto pbr = material.find("pbrMetallicRoughness");
-    if (pbr != material.end() && pbr->is_object()) numbers_in(*pbr, "baseColorFactor", 0, 1, "in [0, 1]");
-    numbers_in(material, "emissiveFactor", 0, 1e30, "≥ 0");
+    if (pbr != material.end() && pbr->is_object()) {
+      numbers_in(*pbr, "baseColorFactor", 4, 0, 1, "in [0, 1]");
+      number_in_unit(*pbr, "metallicFactor");
+      number_in_unit(*pbr, "roughnessFactor");
+    }
+    numbers_in(material, "emissiveFactor", 3, 0, 1e30, "≥ 0");
     const auto mode = material.find("alphaMode");
     if (mode != material.end() && *mode != "OPAQUE" && *mode != "MASK" && *mode != "BLEND")
       throw file_error(path, what + ": alphaMode " + spelled(*mode) + " is not OPAQUE, MASK or BLEND");

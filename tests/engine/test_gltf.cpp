@@ -1331,35 +1331,46 @@ TEST_CASE("malformed optional glTF properties are refused, not defaulted", "[glt
   TempDir tmp;
   using nlohmann::json;
   check_refused(
-      tmp, {{"byte_offset", [](json& s) { s["accessors"][0]["byteOffset"] = -4; },
-             "accessor 0: byteOffset must be a non-negative integer, not -4"},
-            {"rotation", [](json& s) { s["nodes"][2]["rotation"] = "abc"; },
-             "node 2 ('gold_cube'): rotation must be an array of numbers, not \"abc\""},
-            {"scale_text",
-             [](json& s) {
-               s["nodes"][3]["scale"] = {1, "x", 1};
-             },
-             "node 3 ('plastic_box'): scale must be"},
-            {"scene", [](json& s) { s["scene"] = -1; }, "scene must be a non-negative integer, not -1"},
-            {"texture", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = -2; },
-             "material 0 ('ground'): baseColorTexture: index must be a non-negative integer, not -2"},
-            {"camera", [](json& s) { s["nodes"][5]["camera"] = -1; },
-             "node 5 ('camera'): camera must be a non-negative integer, not -1"},
-            {"mesh", [](json& s) { s["nodes"][0]["mesh"] = -7; }, "node 0 ('ground'): mesh must be"},
-            {"indices", [](json& s) { s["meshes"][0]["primitives"][0]["indices"] = -1; },
-             "mesh 0 ('ground') primitive 0: indices must be a non-negative integer, not -1"},
-            {"emissive",  // the lamp went dark without a word
-             [](json& s) {
-               s["materials"][3]["emissiveFactor"] = {-1, 0, 0};
-             },
-             "material 3 ('lamp'): emissiveFactor values must be ≥ 0, not [-1,0,0]"},
-            {"base_factor",  // with a texture (without one, the parameter's range refused it already)
-             [](json& s) {
-               s["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] = {2, 1, 1, 1};
-             },
-             "material 0 ('ground'): baseColorFactor values must be in [0, 1], not [2,1,1,1]"},
-            {"alpha_mode", [](json& s) { s["materials"][1]["alphaMode"] = "CUTOUT"; },
-             "material 1 ('gold'): alphaMode \"CUTOUT\" is not OPAQUE, MASK or BLEND"},
-            {"alpha_cutoff", [](json& s) { s["materials"][1]["alphaCutoff"] = -1; },
-             "material 1 ('gold'): alphaCutoff must be a number ≥ 0, not -1"}});
+      tmp,
+      {{"byte_offset", [](json& s) { s["accessors"][0]["byteOffset"] = -4; },
+        "accessor 0: byteOffset must be a non-negative integer, not -4"},
+       {"rotation", [](json& s) { s["nodes"][2]["rotation"] = "abc"; },
+        "node 2 ('gold_cube'): rotation must be an array of numbers, not \"abc\""},
+       {"scale_text",
+        [](json& s) {
+          s["nodes"][3]["scale"] = {1, "x", 1};
+        },
+        "node 3 ('plastic_box'): scale must be"},
+       {"scene", [](json& s) { s["scene"] = -1; }, "scene must be a non-negative integer, not -1"},
+       {"texture", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = -2; },
+        "material 0 ('ground'): baseColorTexture: index must be a non-negative integer, not -2"},
+       {"camera", [](json& s) { s["nodes"][5]["camera"] = -1; },
+        "node 5 ('camera'): camera must be a non-negative integer, not -1"},
+       {"mesh", [](json& s) { s["nodes"][0]["mesh"] = -7; }, "node 0 ('ground'): mesh must be"},
+       {"indices", [](json& s) { s["meshes"][0]["primitives"][0]["indices"] = -1; },
+        "mesh 0 ('ground') primitive 0: indices must be a non-negative integer, not -1"},
+       {"emissive",  // the lamp went dark without a word
+        [](json& s) {
+          s["materials"][3]["emissiveFactor"] = {-1, 0, 0};
+        },
+        "material 3 ('lamp'): emissiveFactor values must be ≥ 0, not [-1,0,0]"},
+       {"base_factor",  // with a texture (without one, the parameter's range refused it already)
+        [](json& s) {
+          s["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] = {2, 1, 1, 1};
+        },
+        "material 0 ('ground'): baseColorFactor values must be in [0, 1], not [2,1,1,1]"},
+       {"alpha_mode", [](json& s) { s["materials"][1]["alphaMode"] = "CUTOUT"; },
+        "material 1 ('gold'): alphaMode \"CUTOUT\" is not OPAQUE, MASK or BLEND"},
+       {"alpha_cutoff", [](json& s) { s["materials"][1]["alphaCutoff"] = -1; },
+        "material 1 ('gold'): alphaCutoff must be a number ≥ 0, not -1"},
+       // Factors of another JSON type: tinygltf used its default in their place, without a word
+       // (a roughness "0.2" rendered as 1, a metallic "0" as a metal, emission "1 1 1" as none).
+       {"roughness_text", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["roughnessFactor"] = "0.2"; },
+        "material 0 ('ground'): roughnessFactor must be a number in [0, 1], not \"0.2\""},
+       {"metallic_text", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] = "0"; },
+        "material 0 ('ground'): metallicFactor must be a number in [0, 1], not \"0\""},
+       {"base_text", [](json& s) { s["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] = "0.2 0.3 0.4 1"; },
+        "material 0 ('ground'): baseColorFactor must be an array of 4 numbers"},
+       {"emissive_text", [](json& s) { s["materials"][3]["emissiveFactor"] = "1 1 1"; },
+        "material 3 ('lamp'): emissiveFactor must be an array of 3 numbers"}});
 }
