@@ -19,6 +19,7 @@
 #include <filesystem>
 #include <fstream>
 #include <regex>
+#include <set>
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
@@ -329,9 +330,12 @@ std::string first_line(std::string s) {
   return s;
 }
 
-// OpenEXR: the data window, channels R, G, B when the file has them, else Y, else the first
-// (at most three) channels in the file's (alphabetical) order; alpha and other layers are not
-// read. Every pixel type is returned as float. check_exr_header has walked the header already.
+// OpenEXR: the data window, channels R, G, B when the file has them, else Y, else one layer's
+// <layer>.R/.G/.B or <layer>.Y (the only layer that has them), else a file's only channel;
+// alpha and other layers are not read. Anything else is refused: the first three channels in
+// the file's alphabetical order were taken before, so diffuse.B/G/R loaded as blue, green, red
+// and a file of R and G as (G, R, R). Every pixel type is returned as float. check_exr_header
+// has walked the header already.
 Image read_exr(const std::string& path) {
   try {
     Imf::InputFile file(path.c_str());
@@ -342,13 +346,39 @@ Image read_exr(const std::string& path) {
     limits::check_image_size(path, uint64_t(w), uint64_t(h));
     const Imf::ChannelList& list = header.channels();
     std::vector<std::string> names;
-    if (list.findChannel("R") && list.findChannel("G") && list.findChannel("B"))
-      names = {"R", "G", "B"};
-    else if (list.findChannel("Y"))
-      names = {"Y"};
-    else
-      for (auto it = list.begin(); it != list.end() && names.size() < 3; ++it) names.emplace_back(it.name());
-    if (names.empty()) throw file_error(path, "image has no channels");
+    auto colour_in = [&](const std::string& prefix) -> std::vector<std::string> {
+      if (list.findChannel(prefix + "R") && list.findChannel(prefix + "G") && list.findChannel(prefix + "B"))
+        return {prefix + "R", prefix + "G", prefix + "B"};
+      if (list.findChannel(prefix + "Y")) return {prefix + "Y"};
+      return {};
+    };
+    names = colour_in("");
+    std::string all;  // the channel names, for the message
+    size_t count = 0;
+    for (auto it = list.begin(); it != list.end(); ++it, ++count)
+      if (count < 12) all += std::string(all.empty() ? "" : ", ") + std::string(it.name()).substr(0, 64);
+    if (count > 12) all += ", ...";
+    if (names.empty()) {
+      std::vector<std::string> layers;  // layers with colour channels
+      std::set<std::string> prefixes;
+      for (auto it = list.begin(); it != list.end(); ++it) {
+        const std::string n = it.name();
+        if (const size_t dot = n.rfind('.'); dot != std::string::npos) prefixes.insert(n.substr(0, dot + 1));
+      }
+      for (const auto& prefix : prefixes)
+        if (!colour_in(prefix).empty()) layers.push_back(prefix);
+      if (layers.size() == 1)
+        names = colour_in(layers[0]);
+      else if (layers.size() > 1)
+        throw file_error(
+            path, "OpenEXR image with several colour layers (channels " + all + "): which one to read is ambiguous");
+      else if (count == 1)
+        names = {list.begin().name()};
+    }
+    if (count == 0) throw file_error(path, "image has no channels");
+    if (names.empty())
+      throw file_error(path, "OpenEXR image without R, G, B or Y channels (channels " + all +
+                                 "): which channel is which colour is unknown");
     for (const auto& n : names)
       if (const Imf::Channel* c = list.findChannel(n); c->xSampling != 1 || c->ySampling != 1)
         throw file_error(path, "unsupported OpenEXR image (channel '" + n.substr(0, 64) + "' is subsampled)");

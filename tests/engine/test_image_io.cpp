@@ -277,6 +277,28 @@ TEST_CASE("OpenEXR layouts: data window, Y, half, extra layers, subsampling", "[
     REQUIRE(back.channels == 1);
     CHECK(back.data == std::vector<float>{1, 2, 3, 4, 5, 6.5f});
   }
+  SECTION("one layer's colour channels; two-channel and ambiguous files refused") {
+    // diffuse.B, diffuse.G, diffuse.R sort blue first: they were read as (B, G, R), and a file of
+    // R and G as (G, R, R), without a word.
+    OIIO::ImageSpec spec(2, 1, 4, OIIO::TypeDesc::FLOAT);
+    spec.channelnames = {"diffuse.R", "diffuse.G", "diffuse.B", "depth.Z"};
+    write("layer.exr", spec, {0.9f, 0.5f, 0.1f, 7.f, 0.8f, 0.4f, 0.2f, 8.f});
+    const Image back = read_image(tmp("layer.exr"), false);
+    REQUIRE(back.channels == 3);
+    CHECK(back.data == std::vector<float>{0.9f, 0.5f, 0.1f, 0.8f, 0.4f, 0.2f});
+    OIIO::ImageSpec rg(2, 1, 2, OIIO::TypeDesc::FLOAT);
+    rg.channelnames = {"R", "G"};
+    write("rg.exr", rg, {0.9f, 0.5f, 0.8f, 0.4f});
+    CHECK(error_of(tmp("rg.exr")).find("without R, G, B or Y channels (channels G, R)") != std::string::npos);
+    OIIO::ImageSpec two(1, 1, 6, OIIO::TypeDesc::FLOAT);
+    two.channelnames = {"a.R", "a.G", "a.B", "b.R", "b.G", "b.B"};
+    write("two.exr", two, {1, 2, 3, 4, 5, 6});
+    CHECK(error_of(tmp("two.exr")).find("several colour layers") != std::string::npos);
+    OIIO::ImageSpec one(2, 1, 1, OIIO::TypeDesc::FLOAT);
+    one.channelnames = {"Z"};
+    write("z.exr", one, {3.f, 4.f});
+    CHECK(read_image(tmp("z.exr"), false).data == std::vector<float>{3.f, 4.f});
+  }
   SECTION("NaN is refused with the pixel") {
     OIIO::ImageSpec spec(2, 2, 3, OIIO::TypeDesc::FLOAT);
     std::vector<float> px(12, 0.5f);
