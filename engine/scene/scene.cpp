@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <iomanip>
 #include <sstream>
 #include <unordered_map>
 
@@ -381,8 +382,10 @@ void validate_param(const Param& p, const std::string& where) {
       throw InputError(where + ": parameter '" + p.name + "' element " + std::to_string(i) + " is NaN or infinite");
     if (v < p.lower || v > p.upper) {
       std::ostringstream s;
-      s << where << ": parameter '" << p.name << "' element " << i << " = " << v << " is outside its valid range ["
-        << p.lower << ", " << p.upper << "]" << (v < 0 && p.lower >= 0 ? " (negative)" : "");
+      // All the digits a float needs: 1.0000001 printed as "1" read as inside [0, 1].
+      s << where << ": parameter '" << p.name << "' element " << i << " = " << std::setprecision(9) << v
+        << std::setprecision(6) << " is outside its valid range [" << p.lower << ", " << p.upper << "]"
+        << (v < 0 && p.lower >= 0 ? " (negative)" : "");
       throw InputError(s.str());
     }
   }

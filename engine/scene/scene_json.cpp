@@ -69,6 +69,14 @@ struct Loader {
   std::vector<std::string> warnings;
 
   std::string resolve(const std::string& f) const { return (dir / f).lexically_normal().string(); }
+  // The file a node's "file" names, relative to the scene's folder; an empty name is refused here
+  // (it said "backlight: : file not found", naming neither the scene nor the key).
+  template <class N>
+  std::string input_file(N& n) const {
+    const std::string f = n.string("file");
+    if (f.empty()) n.fail_at("file", "the file name is empty");
+    return resolve(f);
+  }
 
   // A texturable value → a parameter "<owner>.<key>" and a slot reading it.
   TextureSlot texturable(const json& v, const std::string& where, const std::string& owner, const std::string& key,
@@ -98,7 +106,7 @@ struct Loader {
       Node n(v, where, file);
       std::string type = n.string("type");
       if (type != "bitmap") n.fail_at("type", "unknown texture type '" + type + "' (expected \"bitmap\")");
-      std::string path = resolve(n.string("file"));
+      std::string path = input_file(n);
       std::string wrap = n.string("wrap", "repeat");
       if (wrap != "repeat" && wrap != "clamp" && wrap != "mirror")
         n.fail_at("wrap", "expected \"repeat\", \"clamp\" or \"mirror\"");
@@ -173,8 +181,7 @@ struct Loader {
       Node g(v, where, file);
       const std::string type = g.string("type");
       if (type != "vol" && type != "vdb") g.fail_at("type", "unknown grid type '" + type + "' (expected vol or vdb)");
-      VolumeGrid grid = type == "vol" ? read_vol(resolve(g.string("file")))
-                                      : read_vdb(resolve(g.string("file")), g.string("grid", ""));
+      VolumeGrid grid = type == "vol" ? read_vol(input_file(g)) : read_vdb(input_file(g), g.string("grid", ""));
       g.finish();
       if (grid.channels != 1 && !(rgb && grid.channels == 3))
         throw file_error(file, where + ": the grid has " + std::to_string(grid.channels) + " channels; expected " +
@@ -400,12 +407,12 @@ struct Loader {
     } else if (type == "mesh") {
       parts.push_back(inline_mesh(n));
     } else if (type == "gltf") {
-      parts = load_gltf_meshes(resolve(n.string("file")), Transform(), warnings);
+      parts = load_gltf_meshes(input_file(n), Transform(), warnings);
       if (parts.empty()) n.fail_at("file", "the glTF file has no triangle meshes");
     } else if (type == "obj") {
-      parts.push_back(read_obj(resolve(n.string("file")), n.boolean("flip_tex_coords", true)));
+      parts.push_back(read_obj(input_file(n), n.boolean("flip_tex_coords", true)));
     } else if (type == "ply") {
-      parts.push_back(read_ply(resolve(n.string("file"))));
+      parts.push_back(read_ply(input_file(n)));
     } else if (type == "sphere") {
       parts.push_back(make_sphere(int(n.integer("segments", 64, 4, 4096))));
     } else {
@@ -476,6 +483,7 @@ struct Loader {
       env.bilinear = convention == "mitsuba";
       const std::string cs = n.string("color_space", "linear");
       if (cs != "auto" && cs != "srgb" && cs != "linear") n.fail_at("color_space", "expected \"srgb\" or \"linear\"");
+      if (n.string("file").empty()) n.fail_at("file", "the file name is empty");
       json tex = {{"type", "bitmap"}, {"file", n.string("file")}, {"color_space", cs}};
       TextureSlot slot = texturable(tex, n.pointer("file"), "environment", "radiance", false, 0.f, 1e30f);
       env.param = slot.param;

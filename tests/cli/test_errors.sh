@@ -258,6 +258,9 @@ linear_scene="$(v linear_wall 's["materials"]["wall"]["albedo"] = {"type": "bitm
 expect_ok set_linear_a render "$linear_scene" -o "$tmp/lin_a.pfm" --spp 2 -q &&
   expect_ok set_linear_b render "$linear_scene" -o "$tmp/lin_b.pfm" --spp 2 -q --set "wall.albedo=$tmp/lin8.png" &&
   { cmp -s "$tmp/lin_a.pfm" "$tmp/lin_b.pfm" || fail "--set of a linear texture's own 8-bit file changed the render"; }
+# An empty file name names the scene and the key (it was "backlight: : file not found").
+expect_error empty_texture_file "/materials/wall/albedo/file" "file name is empty" -- \
+  render "$(v empty_file 's["materials"]["wall"]["albedo"]["file"] = ""')" -o o.exr -q
 # max_depth -1 with Russian roulette off in a closed room: the throughput underflows to 0 (albedo
 # 0.01: after ~25 bounces) and the path went on for ever (render and grad never finished). Now it
 # ends when nothing more can reach the film.
