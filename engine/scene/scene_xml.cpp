@@ -677,6 +677,10 @@ class XmlScene {
       json spec = texturable(n, p, "specular_reflectance", 1.0);
       if (spec.is_object()) fail(n, "a textured specular_reflectance is not supported");
       if (spec.is_number()) spec = json::array({spec, spec, spec});
+      if (!has(p, "eta") && spec != json::array({1.0, 1.0, 1.0}))
+        warn(n, "conductor_none",
+             "Mitsuba's material \"none\" reflects specular_reflectance at every angle; here it is Schlick's F0, "
+             "rising towards 1 at grazing angles (0.3 becomes 0.46 at 75 degrees)");
       for (int c = 0; c < 3; ++c) f0[size_t(c)] = f0[size_t(c)].get<double>() * spec[size_t(c)].get<double>();
       m = {{"type", "roughconductor"}, {"specular", f0}, {"roughness", alpha}};
       check_objects({"specular_reflectance"});

@@ -279,6 +279,12 @@ for args in "render closed_room.json -o closed_room.exr" "grad closed_room.json 
   timeout 60 "$bin" $args -q --threads 1 > /dev/null 2> err.closed_room || rc=$?
   [ $rc -eq 0 ] || fail "closed room, max_depth -1, rr_depth 0 ($args): exit $rc (124: did not finish): $(cat err.closed_room)"
 done
+# A Mitsuba conductor without eta/k (material "none": F = specular_reflectance at every angle) is
+# rendered with Schlick's rise to 1 at grazing angles: said once, as a warning.
+printf '<scene version="3.0.0">\n%s\n<shape type="rectangle"><bsdf type="conductor"><rgb name="specular_reflectance" value="0.3"/></bsdf></shape>\n</scene>\n' "$xml_sensor" >conductor_none.xml
+expect_ok xml_conductor_none render conductor_none.xml -o "$tmp/conductor_none.exr" -q &&
+  { grep -q "material \"none\" reflects specular_reflectance at every angle" "$tmp/err.xml_conductor_none" ||
+      fail "xml_conductor_none: no warning: $(cat "$tmp/err.xml_conductor_none")"; }
 # An emitter on a null-material shape: crossed without a vertex, its emission was left out (a lamp
 # 24% too dark in JSON, all black from XML). Refused, in both formats.
 printf '<scene version="3.0.0">\n%s\n<shape type="rectangle"><bsdf type="null"/><emitter type="area"><rgb name="radiance" value="3"/></emitter></shape>\n</scene>\n' "$xml_sensor" >null_emitter.xml
