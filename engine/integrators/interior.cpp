@@ -196,7 +196,6 @@ bool albedo_slope(const Scene& scene, const PathVertex& v, const Vec3f& radiance
   return any;
 }
 
-// Pulls one path's derivatives back from its last vertex to the camera.
 // Whether a factor's logarithm, recomputed in double, is finite. Where it is not, the float
 // primal took the configuration for light transport by rounding alone: a light sample from a
 // point on the emitter's own plane (a two-sided emitter's reflective back: cos_y exactly 0 here,
@@ -208,6 +207,7 @@ bool finite_log(const D& l) {
   return std::isfinite(value_of(l));
 }
 
+// Pulls one path's derivatives back from its last vertex to the camera.
 void backpropagate(const Scene& scene, const std::vector<PathVertex>& path, const std::vector<MovingHit<double>>& hits,
                    const std::vector<Vec3d>& boundary_x, const Vec3f& radiance, const Vec3d& a,
                    const std::vector<int>& slot, bool interior, bool camera_moves, Accumulator& acc) {
