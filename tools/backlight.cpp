@@ -335,7 +335,8 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                   [](const CheckRow& r) { return r.adjoint == 0.0 && r.finite_difference == 0.0; })) {
     std::printf(
         "nothing compared: neither the adjoint nor the renders change with '%s' in %zu direction(s) (it does "
-        "not reach this image)\n",
+        "not reach this image, or sits where no derivative is estimated: a density or albedo at exactly 0, "
+        "README \"Zero factors\")\n",
         c.param.c_str(), rows.size());
     return 1;
   }
