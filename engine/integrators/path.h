@@ -600,10 +600,11 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         const float w = mis_bsdf_pdf > 0.f
                             ? power_heuristic(mis_bsdf_pdf, select_pdf * scene.environment.pdf(ray.direction, look))
                             : 1.f;
-        Spectrum<T> contribution = beta * scene.environment.eval<T>(params, look) * w;
+        const Spectrum<T> emitted = scene.environment.eval<T>(params, look);
+        Spectrum<T> contribution = beta * emitted * w;
         radiance += contribution;
         if constexpr (kZero)
-          if (zc.active) zc.radiance += zc.beta * scene.environment.eval<T>(params, look) * w;
+          if (zc.active) zc.radiance += zc.beta * emitted * w;
         if constexpr (Observer::kActive)
           observer.emission({-1, {}, ray.direction}, value_of(beta) * w, value_of(contribution));
       }
@@ -643,10 +644,11 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         if (mis_bsdf_pdf > 0.f)
           w = power_heuristic(
               mis_bsdf_pdf, select_pdf * emitter.pdf(travelled + hit.t, std::abs(dot(sp.geometric_normal, wo_world))));
-        Spectrum<T> contribution = beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
+        const Spectrum<T> emitted = emitter.eval<T>(params, sp.uv, cos_shading);
+        Spectrum<T> contribution = beta * emitted * w;
         radiance += contribution;
         if constexpr (kZero)
-          if (zc.active) zc.radiance += zc.beta * emitter.eval<T>(params, sp.uv, cos_shading) * w;
+          if (zc.active) zc.radiance += zc.beta * emitted * w;
         if constexpr (Observer::kActive)
           observer.emission({mesh.emitter, sp.uv, {}}, value_of(beta) * w, value_of(contribution));
       }
