@@ -204,7 +204,8 @@ struct GradFlags {
         ->check(kSeed);
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
     app->add_option("--memory-budget", memory_budget,
-                    "Taped mode: tape size limit, e.g. 512MB or 4GB (default 80% of RAM)");
+                    "Taped mode: limit on the tape and its sweep's adjoints (20 bytes per recorded operation, "
+                    "checked every 8 samples), e.g. 512MB or 4GB (default 80% of RAM)");
     app->add_flag("--replay-whole-paths", replay_whole_paths,
                   "prb/rb: replay each path to its end, not only to its last vertex that can produce a derivative "
                   "(same gradient, slower; for benchmarks)");

@@ -545,7 +545,8 @@ void write_gradient_outputs(const Scene& scene, const GradientRequest& rq, const
   j["timings"] = {{"primal_seconds", r.primal_seconds},
                   {"adjoint_seconds", r.adjoint_seconds},
                   {"total_seconds", r.primal_seconds + r.adjoint_seconds}};
-  if (rq.method == GradientMethod::Taped) j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}};
+  if (rq.method == GradientMethod::Taped)
+    j["tape"] = {{"bytes", r.tape_bytes}, {"entries", r.tape_entries}, {"budget_bytes", r.tape_budget_bytes}};
   if (!r.peak_rss_bytes.empty()) {
     // One entry per MPI rank (one on a single process): the memory each process needed.
     nlohmann::json ranks = nlohmann::json::array();

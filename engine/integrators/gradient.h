@@ -35,7 +35,9 @@ struct GradientResult {
   double loss = 0;  // the loss, or F for an adjoint image
   Image image;      // the primal render the loss was computed on
   double primal_seconds = 0, adjoint_seconds = 0;
-  uint64_t tape_bytes = 0, tape_entries = 0;  // taped mode
+  // taped mode: the tape (16-byte entries) and what --memory-budget counts (each entry and its
+  // float adjoint slot of the reverse sweep)
+  uint64_t tape_bytes = 0, tape_entries = 0, tape_budget_bytes = 0;
   // Per MPI rank (one entry on one process), when known: peak RSS, and seconds in MPI calls.
   std::vector<double> peak_rss_bytes, mpi_seconds;
 };

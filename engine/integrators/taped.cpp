@@ -50,10 +50,19 @@ namespace {
 // Bytes the tape costs per entry: the entry itself plus the adjoint slot of the reverse sweep.
 constexpr size_t kBytesPerEntry = sizeof(TapeEntry) + sizeof(float);
 
-// "12 MB", or "0.001 MB" below one (a budget of 1KB was "0 MB").
+// Three digits ("13.1 MB", "0.001 MB": a budget of 1KB was "0 MB", and a projection of 13.2 MB
+// against a budget of 13.1 MB read "13 MB ... budget of 13 MB"); whole megabytes from 1000 on.
 std::string megabytes(double bytes) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, bytes < 1e6 ? "%.3g MB" : "%.0f MB", bytes / 1e6);
+  std::snprintf(buf, sizeof buf, bytes < 1e9 ? "%.3g MB" : "%.0f MB", bytes / 1e6);
+  return buf;
+}
+
+// "37%", or "0.4%" below one (the guard can trip after a few of a large render's samples).
+std::string percent(uint64_t part, uint64_t whole) {
+  char buf[32];
+  const double p = 100.0 * double(part) / double(whole);
+  std::snprintf(buf, sizeof buf, p < 1 ? "%.2g%%" : "%.0f%%", p);
   return buf;
 }
 
@@ -75,35 +84,57 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   result.image = Image(cam.width, cam.height, 3);
   std::vector<PixelOutput> outputs(pixels);
   tbb::enumerable_thread_specific<Tape> tapes;
-  std::atomic<uint64_t> entries{0}, pixels_done{0};
+  std::atomic<uint64_t> entries{0}, samples_done{0};
   std::atomic<bool> over_budget{false};
-  std::atomic<double> projected_bytes{0};
-  std::atomic<uint64_t> trigger_pixels{0};
+  std::atomic<double> projected_bytes{0};  // or the recorded size, with actual_over
+  std::atomic<uint64_t> trigger_samples{0};
+  std::atomic<bool> actual_over{false};  // the recorded size itself passed the budget
+  const uint64_t own_samples = uint64_t(own_pixels) * uint64_t(rq.pass.spp);
+
+  // Memory guard, after every packet of camera samples (a tile at 1024 spp recorded 400 MB before
+  // a guard after each tile looked): projects the final size from the samples recorded so far and
+  // stops as soon as the projection (after 5% of them) or the actual size passes the budget.
+  auto guard = [&](uint64_t new_entries, uint64_t new_samples) {
+    const uint64_t total = entries += new_entries;
+    const uint64_t done = samples_done += new_samples;
+    const double projected = double(total) * double(kBytesPerEntry) * double(own_samples) / double(done);
+    const double actual = double(total) * double(kBytesPerEntry);
+    if ((done * 20 >= own_samples && projected > double(budget)) || actual > double(budget)) {
+      // Keep the projection that tripped the guard (other threads may project less meanwhile).
+      bool expected = false;
+      if (over_budget.compare_exchange_strong(expected, true)) {
+        actual_over.store(actual > double(budget));
+        projected_bytes.store(actual > double(budget) ? actual : projected);
+        trigger_samples.store(done);
+      }
+    }
+  };
 
   // 1. Record the whole render.
-  Progress progress("taped record", uint64_t(own_pixels) * uint64_t(rq.pass.spp), "spp", rq.pass.progress);
+  Progress progress("taped record", own_samples, "spp", rq.pass.progress);
   progress.set_ranks(dist::size());
   for_each_tile(
       cam.width, cam.height,
       [&](int x0, int y0, int x1, int y1) {
-        if (over_budget.load(std::memory_order_relaxed)) return;
         Tape& tape = tapes.local();
         current_tape = &tape;
-        const size_t before = tape.size();
         NoObserver none;
         for (int y = y0; y < y1; ++y)
           for (int x = x0; x < x1; ++x) {
-            if (cancelled(rq.pass.cancel)) continue;
+            if (cancelled(rq.pass.cancel) || over_budget.load(std::memory_order_relaxed)) continue;
             const uint64_t pixel = uint64_t(y) * uint64_t(cam.width) + uint64_t(x);
             Spectrum<Var> sum(Var(0.f));
             CameraPacket packet;  // the camera rays as render() traces them
             for (int s0 = 0; s0 < rq.pass.spp; s0 += Geometry::kPacket) {
               const int n = std::min(Geometry::kPacket, rq.pass.spp - s0);
+              const size_t before = tape.size();
               packet.trace(scene, cam, rq.pass.seed, x, y, n, [&](int k) { return s0 + k; });
               for (int k = 0; k < n; ++k) {
                 const PathSampler sampler(rq.pass.seed, pixel, uint64_t(s0 + k));
                 sum += trace_path<Var>(scene, packet.start(k), sampler, none);
               }
+              guard(tape.size() - before, uint64_t(n));
+              if (over_budget.load(std::memory_order_relaxed)) break;
             }
             Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
             PixelOutput& out = outputs[pixel];
@@ -112,28 +143,18 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
               result.image.at(x, y, c) = mean[c].v;
               out.index[c] = mean[c].index;
             }
+            progress.advance(uint64_t(rq.pass.spp));
           }
-        // Memory guard: project the final size from the pixels recorded so far, and stop as soon as
-        // the projection or the actual size passes the budget.
-        uint64_t total = entries += tape.size() - before;
-        uint64_t done = pixels_done += uint64_t(x1 - x0) * uint64_t(y1 - y0);
-        double projected = double(total) * double(kBytesPerEntry) * double(own_pixels) / double(done);
-        if ((done * 20 >= own_pixels && projected > double(budget)) ||
-            double(total * kBytesPerEntry) > double(budget)) {
-          // Keep the projection that tripped the guard (other tiles may project less meanwhile).
-          bool expected = false;
-          if (over_budget.compare_exchange_strong(expected, true))
-            projected_bytes.store(std::max(projected, double(total * kBytesPerEntry))), trigger_pixels.store(done);
-        }
-        progress.advance(uint64_t(x1 - x0) * uint64_t(y1 - y0) * uint64_t(rq.pass.spp));
         current_tape = nullptr;
       },
       rq.pass.cancel);
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
   if (over_budget)
-    throw InputError("taped: the tape is projected to need at least " + megabytes(projected_bytes.load()) +
-                     " (from the " + std::to_string(100 * trigger_pixels.load() / own_pixels) +
-                     "% of pixels recorded), more than the memory budget of " + megabytes(double(budget)) +
+    throw InputError("taped: the tape " +
+                     (actual_over ? "already needs " + megabytes(projected_bytes.load()) + " after "
+                                  : "is projected to need about " + megabytes(projected_bytes.load()) + " from ") +
+                     percent(trigger_samples.load(), own_samples) + " of the samples, more than the memory budget of " +
+                     megabytes(double(budget)) +
                      " (raise --memory-budget, or lower --spp / --resolution / --max-depth)");
   progress.finish();
   dist::complete_image(result.image);
@@ -182,6 +203,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   result.adjoint_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   result.tape_entries = entries.load();
   result.tape_bytes = result.tape_entries * sizeof(TapeEntry);
+  result.tape_budget_bytes = result.tape_entries * kBytesPerEntry;
   return result;
 }
 
