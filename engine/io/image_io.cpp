@@ -765,7 +765,7 @@ void check_output_format(const std::string& path) {
     (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");
 }
 
-void write_image(const std::string& path, const Image& image) {
+void write_image(const std::string& path, const Image& image, bool encode_srgb) {
   check_output_format(path);
   std::string ext = fs::path(path).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
@@ -780,7 +780,8 @@ void write_image(const std::string& path, const Image& image) {
     if (!is_float) {
       bytes.resize(image.data.size());
       for (size_t i = 0; i < bytes.size(); ++i)
-        bytes[i] = (unsigned char)std::lround(linear_to_srgb(image.data[i]) * 255.f);
+        bytes[i] = (unsigned char)std::lround(
+            (encode_srgb ? linear_to_srgb(image.data[i]) : std::clamp(image.data[i], 0.f, 1.f)) * 255.f);
     }
     if (ext == ".png") {
       write_png(tmp, path, image, bytes);

@@ -41,8 +41,10 @@ Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_
 void check_encoded_image(const std::string& where, const unsigned char* bytes, size_t size);
 // Throws InputError unless the extension is one write_image supports (check before long work).
 void check_output_format(const std::string& path);
-// Writes by extension: .exr/.pfm/.hdr as float, .png/.jpg as sRGB 8-bit clamped. Atomic.
-void write_image(const std::string& path, const Image& image);
+// Writes by extension: .exr/.pfm/.hdr as float, .png/.jpg as 8-bit clamped to [0, 1], sRGB-encoded
+// when `encode_srgb` (a linear texture's own values otherwise, so that reading the file back in
+// its colour space gives them again). Atomic.
+void write_image(const std::string& path, const Image& image, bool encode_srgb = true);
 // Writes `text` to `path` atomically (temp file + rename).
 void write_text_atomic(const std::string& path, const std::string& text);
 // The same for raw bytes, written straight from `data` (no copy).

@@ -1360,7 +1360,7 @@ class Job {
       }
       if (!param.is_image()) continue;
       write_image(dir + "/" + p.name + "_" + tag + ".exr", param_image(param));
-      write_image(dir + "/" + p.name + "_" + tag + ".png", param_image(param));
+      write_image(dir + "/" + p.name + "_" + tag + ".png", param_image(param), param.srgb);
     }
     if (view.width) write_image(dir + "/view_" + std::string(tag) + ".png", view);
   }
@@ -1612,7 +1612,7 @@ class Job {
         write_grid_picture(out("final/" + p.name + ".png"), grid_sheet(view_of(param), grid_vmax(p, param)));
       } else if (param.is_image()) {
         write_image(out("final/" + p.name + ".exr"), param_image(param));
-        write_image(out("final/" + p.name + ".png"), param_image(param));
+        write_image(out("final/" + p.name + ".png"), param_image(param), param.srgb);
       } else {
         final_params[p.name] = param.value;
       }

@@ -548,6 +548,11 @@ expect_error taped_memory_budget "re:[0-9]+ MB" "budget" "re:budget of 1 MB" -- 
 # A budget under a megabyte is stated as such (it was "the memory budget of 0 MB").
 expect_error taped_memory_budget_small "budget of 0.001 MB" -- \
   grad "$small" --spp 1 --target t16.exr --method taped --memory-budget 1KB --out g_err9b -q
+# The budget holds within a tile: the guard looked only after each 16x16 tile, so one tile at
+# 4096 spp recorded ~1.7 GB before a 10 MB budget was compared (a helper-34 audit: 423 MB at 1024
+# spp). With no room for that, it must stop on the recorded size after a few samples.
+expect_error_small taped_budget_within_tile "already needs" "re:after [0-9.]+% of the samples" "budget of 10 MB" -- \
+  grad "$small" --spp 4096 --target t16.exr --method taped --memory-budget 10MB --out g_err9c -q
 expect_error check_unknown_param "nosuch" "unknown parameter" -- check "$small" --spp 1 --target t16.exr --param nosuch
 expect_error check_directions "--directions" -- \
   check "$small" --spp 1 --target t16.exr --param light.radiance --directions 0 --rr-depth 0
@@ -742,6 +747,26 @@ assert v == {struct.unpack("<f", struct.pack("<f", 1.5e-7))[0]}, v
 PY
   else
     fail "optimize small/opt_tiny.json: $(cat err.opt_tiny)"
+  fi
+  # A texture declared linear is written to its PNG linearly, so the PNG read back in its colour
+  # space gives its values to 8 bits (a linear roughness of 0.2 was written sRGB-encoded, code 124,
+  # and --set of the file gave 0.49).
+  scene_variant small/scene.json small/scene_lin.json 's["materials"]["wall"]["albedo"]["color_space"] = "linear"'
+  sed -e 's/"scene.json"/"scene_lin.json"/' -e 's/opt_base/opt_lin/' -e 's/"iterations": 4/"iterations": 2/' small/opt.json >small/opt_lin.json
+  if run_bin out.opt_lin err.opt_lin optimize small/opt_lin.json -q &&
+    run_bin out.lin_dump err.lin_dump params small/scene_lin.json --set wall.albedo=small/opt_lin/final/wall.albedo.png --dump small/lin_dump &&
+    oiiotool --dumpdata small/lin_dump/wall.albedo.exr >small/lin_dump.txt; then
+    python3 - small/opt_lin/checkpoint/wall.albedo.value small/lin_dump.txt <<'PY' || fail "a linear texture's PNG does not read back as its values"
+import struct, sys
+data = open(sys.argv[1], "rb").read()
+want = struct.unpack("<%df" % (len(data) // 4), data)
+got = [float(v) for line in open(sys.argv[2]) if "Pixel (" in line for v in line.split(":")[1].split()]
+assert len(got) == len(want) and min(want) < max(want), (len(got), len(want))
+err = max(abs(a - b) for a, b in zip(got, want))
+assert err <= 0.5 / 255 + 1e-6, err
+PY
+  else
+    fail "optimize small/opt_lin.json: $(cat err.opt_lin err.lin_dump 2>/dev/null)"
   fi
   # A cached target is rendered again when a file of its reference variant changed in place (the
   # cache was keyed on the file's name: the old target stayed).
