@@ -205,7 +205,7 @@ struct GradFlags {
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
     app->add_option("--memory-budget", memory_budget,
                     "Taped mode: limit on the tape and its sweep's adjoints (20 bytes per recorded operation, "
-                    "checked every 8 samples), e.g. 512MB or 4GB (default 80% of RAM)");
+                    "checked every 8 samples), e.g. 512MB or 4GB (default 80% of RAM or of a lower cgroup limit)");
     app->add_flag("--replay-whole-paths", replay_whole_paths,
                   "prb/rb: replay each path to its end, not only to its last vertex that can produce a derivative "
                   "(same gradient, slower; for benchmarks)");

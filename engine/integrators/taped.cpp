@@ -9,6 +9,8 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <fstream>
+#include <string>
 
 #include "engine/core/errors.h"
 #include "engine/core/tape.h"
@@ -18,7 +20,35 @@
 
 namespace bl {
 
-size_t physical_memory_bytes() { return size_t(sysconf(_SC_PHYS_PAGES)) * size_t(sysconf(_SC_PAGE_SIZE)); }
+size_t cgroup_memory_limit(const std::string& proc_cgroup, const std::string& root) {
+  std::ifstream self(proc_cgroup);
+  std::string line, v2, v1;
+  while (std::getline(self, line)) {
+    if (line.rfind("0::", 0) == 0) v2 = line.substr(3);
+    const size_t colon = line.find(':'), second = line.find(':', colon + 1);
+    if (colon != std::string::npos && second != std::string::npos) {
+      const std::string controllers = line.substr(colon + 1, second - colon - 1);
+      if (("," + controllers + ",").find(",memory,") != std::string::npos) v1 = line.substr(second + 1);
+    }
+  }
+  auto read = [](const std::string& path) -> size_t {
+    std::ifstream f(path);
+    std::string text;
+    if (!(f >> text) || text.empty() || text.find_first_not_of("0123456789") != std::string::npos) return 0;  // "max"
+    const double v = std::strtod(text.c_str(), nullptr);
+    return v > 0 && v < 4e18 ? size_t(v) : 0;  // v1 says "no limit" with ~2^63
+  };
+  for (const std::string& path : {root + v2 + "/memory.max", root + "/memory" + v1 + "/memory.limit_in_bytes",
+                                  root + "/memory/memory.limit_in_bytes"})
+    if (size_t limit = read(path)) return limit;
+  return 0;
+}
+
+size_t physical_memory_bytes() {
+  const size_t ram = size_t(sysconf(_SC_PHYS_PAGES)) * size_t(sysconf(_SC_PAGE_SIZE));
+  const size_t limit = cgroup_memory_limit("/proc/self/cgroup", "/sys/fs/cgroup");
+  return limit ? std::min(ram, limit) : ram;
+}
 
 size_t parse_memory_size(const std::string& text) {
   char* end = nullptr;
@@ -49,6 +79,9 @@ namespace {
 
 // Bytes the tape costs per entry: the entry itself plus the adjoint slot of the reverse sweep.
 constexpr size_t kBytesPerEntry = sizeof(TapeEntry) + sizeof(float);
+// A thread's tape addresses its entries with 32-bit indices below Tape::kLeaf; a packet of 8
+// samples records far fewer than the margin left here.
+constexpr size_t kMaxTapeEntries = size_t(Tape::kLeaf) - (size_t(1) << 28);
 
 // Three digits ("13.1 MB", "0.001 MB": a budget of 1KB was "0 MB", and a projection of 13.2 MB
 // against a budget of 13.1 MB read "13 MB ... budget of 13 MB"); whole megabytes from 1000 on.
@@ -89,6 +122,7 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
   std::atomic<double> projected_bytes{0};  // or the recorded size, with actual_over
   std::atomic<uint64_t> trigger_samples{0};
   std::atomic<bool> actual_over{false};  // the recorded size itself passed the budget
+  std::atomic<bool> index_over{false};   // a thread's tape reached kMaxTapeEntries
   const uint64_t own_samples = uint64_t(own_pixels) * uint64_t(rq.pass.spp);
 
   // Memory guard, after every packet of camera samples (a tile at 1024 spp recorded 400 MB before
@@ -134,6 +168,10 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
                 sum += trace_path<Var>(scene, packet.start(k), sampler, none);
               }
               guard(tape.size() - before, uint64_t(n));
+              if (tape.size() >= kMaxTapeEntries) {
+                index_over = true;
+                over_budget = true;
+              }
               if (over_budget.load(std::memory_order_relaxed)) break;
             }
             Spectrum<Var> mean = sum * (1.f / float(rq.pass.spp));
@@ -149,6 +187,10 @@ GradientResult taped_gradient(Scene& scene, const GradientRequest& rq) {
       },
       rq.pass.cancel);
   // Throw before finishing the progress bar, so the error is the only line a failed run leaves.
+  if (index_over)
+    throw InputError("taped: one thread's tape reached " + std::to_string(kMaxTapeEntries) +
+                     " entries, the most its 32-bit indices address (lower --spp / --resolution / --max-depth, or "
+                     "use more threads)");
   if (over_budget)
     throw InputError("taped: the tape " +
                      (actual_over ? "already needs " + megabytes(projected_bytes.load()) + " after "

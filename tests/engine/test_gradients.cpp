@@ -5,10 +5,12 @@
 // shape (zeros where unseen, signs); the same for the metallic-roughness blend, textured lights,
 // a constant sky and meshes with vertex colours.
 #include <tbb/global_control.h>
+#include <unistd.h>
 #include <catch2/catch.hpp>
 
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <numeric>
@@ -17,6 +19,7 @@
 
 #include "engine/integrators/gradient.h"
 #include "engine/integrators/render.h"
+#include "engine/integrators/taped.h"
 #include "engine/scene/scene_load.h"
 #include "test_scenes.h"
 
@@ -344,6 +347,38 @@ TEST_CASE("taped AD and prb agree with colour channels at exactly 0", "[gradient
     INFO(name << " channel " << c << ": sum of |gradient| " << sum);
     CHECK(sum > 0);
   }
+}
+
+TEST_CASE("the taped mode's default budget follows a cgroup memory limit", "[taped]") {
+  // A fake /proc/self/cgroup and /sys/fs/cgroup: the default budget (80% of memory) took the
+  // machine's RAM in a container limited to less, whose kernel kills the process instead.
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("backlight-cgroup-" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  auto write = [&](const std::string& rel, const std::string& text) {
+    fs::create_directories((dir / rel).parent_path());
+    std::ofstream(dir / rel) << text;
+  };
+  const std::string root = (dir / "sys").string(), proc = (dir / "cgroup").string();
+  // cgroup v2: the process's own cgroup's memory.max.
+  write("cgroup", "0::/job/step\n");
+  write("sys/job/step/memory.max", "536870912\n");
+  CHECK(cgroup_memory_limit(proc, root) == 536870912u);
+  write("sys/job/step/memory.max", "max\n");
+  CHECK(cgroup_memory_limit(proc, root) == 0u);
+  // cgroup v1 (a hybrid system also lists "0::/"): the memory controller's path, then its root.
+  write("cgroup", "9:pids:/\n4:memory:/docker/abc\n0::/\n");
+  write("sys/memory/docker/abc/memory.limit_in_bytes", "1073741824\n");
+  CHECK(cgroup_memory_limit(proc, root) == 1073741824u);
+  write("sys/memory/docker/abc/memory.limit_in_bytes", "9223372036854771712\n");  // no limit
+  CHECK(cgroup_memory_limit(proc, root) == 0u);
+  write("cgroup", "4:cpu,memory:/other\n");
+  write("sys/memory/memory.limit_in_bytes", "2147483648\n");
+  CHECK(cgroup_memory_limit(proc, root) == 2147483648u);
+  CHECK(cgroup_memory_limit((dir / "missing").string(), root) == 2147483648u);
+  fs::remove_all(dir);
+  CHECK(cgroup_memory_limit(proc, root) == 0u);
+  CHECK(physical_memory_bytes() > 0u);
 }
 
 TEST_CASE("emitter radiance gradient is exact: dF/dL = sum(dI * I) / L", "[gradient][precision]") {
