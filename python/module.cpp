@@ -124,7 +124,10 @@ py::int_ index_arg(const py::object& v, const std::string& name) {
   if (py::isinstance<py::bool_>(v) || !PyIndex_Check(v.ptr()))
     throw InputError(name + ": expected an integer, got " + type_name(v) + " " + repr_of(v));
   PyObject* i = PyNumber_Index(v.ptr());
-  if (!i) throw py::error_already_set();
+  if (!i) {  // an object whose __index__ fails (torch.tensor(2.5)): its message, with our name
+    const py::error_already_set e;
+    throw InputError(name + ": expected an integer, got " + type_name(v) + " " + repr_of(v) + " (" + e.what() + ")");
+  }
   return py::reinterpret_steal<py::int_>(i);
 }
 
@@ -150,13 +153,25 @@ std::optional<uint64_t> seed_arg(const py::object& v, const std::string& name) {
   return uint64_t(x);
 }
 
+// The same for arguments that have a default and no "not given" (None there is a mistake: it was
+// dereferenced as an empty optional, and resolution=(None, None) rendered at a size from memory).
+int required_int_arg(const py::object& v, const std::string& name, long long lo, long long hi) {
+  if (v.is_none()) throw InputError(name + ": expected an integer, got NoneType None");
+  return *int_arg(v, name, lo, hi);
+}
+uint64_t required_seed_arg(const py::object& v, const std::string& name) {
+  if (v.is_none()) throw InputError(name + ": expected an integer, got NoneType None");
+  return *seed_arg(v, name);
+}
+
 std::optional<std::pair<int, int>> resolution_arg(const py::object& v) {
   if (v.is_none()) return std::nullopt;
   if (!(py::isinstance<py::tuple>(v) || py::isinstance<py::list>(v)) || py::len(v) != 2)
     throw InputError("resolution: expected (width, height), got " + repr_of(v));
   const py::sequence wh = py::reinterpret_borrow<py::sequence>(v);
   const py::object w = wh[0], h = wh[1];
-  return std::pair{*int_arg(w, "resolution: width", 1, 16384), *int_arg(h, "resolution: height", 1, 16384)};
+  return std::pair{required_int_arg(w, "resolution: width", 1, 16384),
+                   required_int_arg(h, "resolution: height", 1, 16384)};
 }
 
 std::string str_arg(const py::object& v, const std::string& name) {
@@ -248,15 +263,17 @@ std::unique_ptr<PyScene> load_py(const py::object& path, const py::object& set, 
                                  const py::object& rr_depth) {
   if (!py::isinstance<py::str>(path) && !py::isinstance<py::bytes>(path) && !py::hasattr(path, "__fspath__"))
     throw InputError("path: expected a file name (str, bytes or os.PathLike), got " + type_name(path));
-  const py::object name = py::module_::import("os").attr("fspath")(path);
+  // As bytes: a str with surrogate escapes (a non-UTF-8 name from os.listdir) cannot be cast to
+  // UTF-8; os.fsencode gives the name the file system has.
+  const py::object name = py::module_::import("os").attr("fsencode")(path);
   std::optional<py::dict> overrides;
   if (!set.is_none()) {
     if (!py::isinstance<py::dict>(set))
       throw InputError("set: expected a dict {name: value}, got " + type_name(set) + " " + repr_of(set));
     overrides = py::reinterpret_borrow<py::dict>(set);
   }
-  return load(name.cast<std::string>(), overrides, int_arg(max_depth, "max_depth", -1, 1 << 20),
-              int_arg(rr_depth, "rr_depth", 0, 1 << 20));
+  return load(std::string(py::reinterpret_borrow<py::bytes>(name)), overrides,
+              int_arg(max_depth, "max_depth", -1, 1 << 20), int_arg(rr_depth, "rr_depth", 0, 1 << 20));
 }
 
 std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::dict>& set, std::optional<int> max_depth,
@@ -291,10 +308,31 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
         }
         continue;
       }
+      if (value.is_none())  // forcecast makes it a NaN
+        throw InputError("set: '" + name +
+                         "': expected a number, numbers (a list or an array) or an image file name, got None");
       auto numbers = py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(value);
       if (py::isinstance<py::bool_>(value) || !numbers) {
         PyErr_Clear();
-        throw InputError("set: '" + name + "': expected a number, numbers (a list or an array) or an image file name");
+        throw InputError("set: '" + name +
+                         "': expected a number, numbers (a list or an array) or an image file name, got " +
+                         type_name(value));
+      }
+      // A flat sequence is taken in C order; an array of more dimensions must have the parameter's
+      // shape (dimensions of size 1 aside): a (3, H, W) texture from PyTorch scrambled its channels.
+      if (numbers.ndim() >= 2) {
+        const Param& p = s->scene->params[s->scene->params.find(name)];
+        std::vector<int> want, got;
+        for (int d : p.shape)
+          if (d != 1) want.push_back(d);
+        for (py::ssize_t d = 0; d < numbers.ndim(); ++d)
+          if (numbers.shape(d) != 1) got.push_back(int(numbers.shape(d)));
+        if (want != got) {
+          std::string w = "(", g = "(";
+          for (size_t i = 0; i < p.shape.size(); ++i) w += (i ? ", " : "") + std::to_string(p.shape[i]);
+          for (py::ssize_t d = 0; d < numbers.ndim(); ++d) g += (d ? ", " : "") + std::to_string(numbers.shape(d));
+          throw InputError("set: '" + name + "': expected shape " + w + ") or a flat sequence, got " + g + ")");
+        }
       }
       set_param_values(*s->scene, name, std::vector<float>(numbers.data(), numbers.data() + numbers.size()), "set");
     }
@@ -666,9 +704,9 @@ PYBIND11_MODULE(_backlight, m) {
          const py::object& seed, const py::object& adjoint_seed, const py::object& camera,
          const py::object& resolution) {
         return check_py(s, str_arg(param, "param"), target, d_image, str_arg(loss, "loss"), str_arg(method, "method"),
-                        *int_arg(directions, "directions", 1, INT32_MAX), real_arg(eps, "eps"),
-                        real_arg(tolerance, "tolerance"), *seed_arg(direction_seed, "direction_seed"),
-                        *int_arg(seeds, "seeds", 1, 1 << 16), pass_args(spp, seed, camera, resolution),
+                        required_int_arg(directions, "directions", 1, INT32_MAX), real_arg(eps, "eps"),
+                        real_arg(tolerance, "tolerance"), required_seed_arg(direction_seed, "direction_seed"),
+                        required_int_arg(seeds, "seeds", 1, 1 << 16), pass_args(spp, seed, camera, resolution),
                         seed_arg(adjoint_seed, "adjoint_seed"));
       },
       py::arg("scene"), py::arg("param"), py::kw_only(), py::arg("target") = py::none(),

@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <functional>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -351,6 +352,16 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
     if (geometry) scene.prepare_sampling();
   };
   const float lower = scene.params[h].lower, upper = scene.params[h].upper;
+  // θ goes back however the check ends: an error, a pass cancelled (Ctrl-C in Python), bad_alloc.
+  struct Restore {
+    std::function<void()> restore;
+    ~Restore() {
+      try {
+        restore();
+      } catch (...) {  // nothing to report it to from a destructor; θ itself is valid
+      }
+    }
+  } restore_theta{[&] { set_values(theta); }};
 
   // The directions and their steps first. Steps are clamped into the valid range (a black texel
   // steps only upwards; the adjoint side predicts the change of the steps actually taken, below);
@@ -411,24 +422,16 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
       double predicted = 0;
       for (size_t i = 0; i < theta.size(); ++i) predicted += double(gradient[i]) * (double(p[i]) - double(m[i]));
       adjoint[size_t(d)].push_back(predicted / (2 * eps));
-      double loss_plus = 0, loss_minus = 0;
-      try {
-        loss_plus = loss_at(p);
-        loss_minus = loss_at(m);
-      } catch (const InputError&) {  // e.g. a step that makes a triangle degenerate: the scene as it was
-        set_values(theta);
-        throw;
-      }
+      // A step may fail (a triangle made degenerate): restore_theta puts the scene back.
+      const double loss_plus = loss_at(p), loss_minus = loss_at(m);
       const double difference = (loss_plus - loss_minus) / (2 * eps);
       if (!std::isfinite(difference)) {
-        set_values(theta);
         throw InputError("--eps " + std::to_string(eps) + ": the renders at θ ± eps·v of '" + name +
                          "' give a loss that is not finite (use a smaller --eps)");
       }
       fd[size_t(d)].push_back(difference);
     }
   }
-  set_values(theta);
 
   auto mean_and_stderr = [](const std::vector<double>& xs, double& mean, double& stderr_of_mean) {
     mean = 0;

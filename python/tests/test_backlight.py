@@ -141,6 +141,11 @@ def test_renders_release_the_gil(scene):
     assert len(ticks) >= 5, (len(ticks), elapsed)
 
 
+class FailingIndex:
+    def __index__(self):
+        raise TypeError("only integer tensors of a single element can be converted to an index")
+
+
 @pytest.mark.parametrize("call, message", [
     (lambda s: backlight.load("/nonexistent/scene.json"), "/nonexistent/scene.json"),
     (lambda s: backlight.load(CORNELL, set={"nope.albedo": 1}), "unknown parameter 'nope.albedo'"),
@@ -197,6 +202,27 @@ def test_renders_release_the_gil(scene):
                                seeds=0), "seeds: 0 is out of range"),
     (lambda s: backlight.check(s, "light.radiance", target=np.ones((24, 20, 3), np.float32), resolution=RES),
      "target: expected shape (20, 24, 3)"),
+    # None where an integer is required was read as an empty optional: resolution=(None, None)
+    # rendered at a size from memory, check's direction_seed=None used an arbitrary seed and
+    # seeds=None ran on (helper-33 audit).
+    (lambda s: backlight.render(s, spp=1, resolution=(None, None)),
+     "resolution: width: expected an integer, got NoneType None"),
+    (lambda s: backlight.render(s, spp=1, resolution=(8, None)), "resolution: height: expected an integer"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               direction_seed=None), "direction_seed: expected an integer, got NoneType None"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               directions=None), "directions: expected an integer"),
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               seeds=None), "seeds: expected an integer"),
+    # An object whose __index__ fails (torch.tensor(2.5)) gave its TypeError without the name.
+    (lambda s: backlight.render(s, spp=FailingIndex()), "spp: expected an integer, got FailingIndex"),
+    # None in set= became NaN ("element 0 is NaN or infinite").
+    (lambda s: backlight.load(CORNELL, set={"light.radiance": None}), "'light.radiance': expected a number"),
+    # An array of the wrong layout was taken in C order: a (3, H, W) texture scrambled its channels.
+    (lambda s: backlight.load(CORNELL, set={"wall.albedo": np.zeros((3, 1024, 1024), np.float32)}),
+     "'wall.albedo': expected shape (1024, 1024, 3) or a flat sequence, got (3, 1024, 1024)"),
+    # A str path that is not UTF-8 (os.listdir's surrogate escapes) failed to cast (RuntimeError).
+    (lambda s: backlight.load("/nonexistent/\udcff.json"), "/nonexistent/\\xff.json: file not found"),
 ])
 def test_bad_arguments_raise_one_line_errors(scene, call, message):
     with pytest.raises(backlight.Error) as info:

@@ -89,6 +89,27 @@ def test_bad_tensors_raise():
         backlight.torch.render(scene, {"light.radiance": torch.ones(3, dtype=torch.bool)}, spp=1, resolution=RES)
     with pytest.raises(backlight.Error, match="unknown method 'magic'"):  # at forward, not in backward
         backlight.torch.render(scene, {"light.radiance": r}, spp=1, resolution=RES, method="magic")
+    # Not a scene, params not a dict: AttributeError and TypeError from inside the wrapper.
+    with pytest.raises(backlight.Error, match="scene: expected a backlight.Scene"):
+        backlight.torch.render(None, {"light.radiance": r}, spp=1, resolution=RES)
+    with pytest.raises(backlight.Error, match="params: expected a dict"):
+        backlight.torch.render(scene, [("light.radiance", r)], spp=1, resolution=RES)
+    with pytest.raises(backlight.Error, match="adjoint_seed: expected an integer"):
+        backlight.torch.render(scene, {"light.radiance": r}, spp=1, resolution=RES, adjoint_seed=2.0)
+
+
+def test_numpy_integers_are_seeds():
+    # adjoint_seed=np.uint64(2) was refused ("expected an integer ..., got 2") while the module's
+    # own seeds took it.
+    scene = backlight.load(CORNELL)
+    r = torch.tensor(scene.params["light.radiance"], requires_grad=True)
+    image = backlight.torch.render(scene, {"light.radiance": r}, spp=1, seed=np.int64(2), resolution=RES,
+                                   adjoint_seed=np.uint64(5))
+    image.sum().backward()
+    r2 = torch.tensor(scene.params["light.radiance"], requires_grad=True)
+    backlight.torch.render(scene, {"light.radiance": r2}, spp=1, seed=2, resolution=RES,
+                           adjoint_seed=5).sum().backward()
+    assert torch.equal(r.grad, r2.grad)
 
 
 def test_a_failed_forward_leaves_the_scene_unchanged():
