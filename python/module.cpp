@@ -293,8 +293,7 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
     for (const auto& [key, value] : *set) {
       const std::string name = py::str(key);
       if (s->scene->params.find(name) < 0) throw InputError("set: unknown parameter '" + name + "' (see scene.params)");
-      // A file name (str), or numbers: a number, a (nested) sequence or an array of any shape,
-      // taken in C order.
+      // A file name (str), or numbers: a number, a (nested) sequence or an array, taken in C order.
       if (py::isinstance<py::str>(value)) {
         const std::string file = py::str(value);
         if (file.empty()) throw InputError("set: '" + name + "': an empty file name");
