@@ -29,11 +29,23 @@ T hg_clamp_g(const T& g) {
   return g;
 }
 
+// p = (1 − g²) / (4π (1 + g² + 2gμ)^1.5), μ = wi·wo. The denominator is written as a sum of
+// positive terms, (1 − g)² + g|wi + wo|² for g ≥ 0 (1 + μ = |wi + wo|²/2 for unit vectors) and
+// (1 + g)² − g|wi − wo|² for g < 0: 1 + g² + 2gμ cancels in float where the function peaks
+// (its value there ~(1 − |g|)², against a rounding of μ near ±1 of ~6e-8), which put the value
+// off by 0.6% at g = 0.99 and 55% at 0.999 on sampled directions, its derivative by 14% and 6×;
+// now 2e-6 / 2e-4 and 2e-5 / 1.3e-3 (a small error in the vectors' lengths enters squared).
 template <class T>
 T hg_eval(const HgParams<T>& p, const Vec3f& wi, const Vec3f& wo) {
   const T g = hg_clamp_g(p.g);
-  const float mu = std::clamp(dot(wi, wo), -1.f, 1.f);
-  const T denom = T(1.f) + g * g + 2.f * mu * g;
+  T denom;
+  if (value_of(g) >= 0.f) {
+    const Vec3f s = wi + wo;
+    denom = (T(1.f) - g) * (T(1.f) - g) + g * dot(s, s);
+  } else {
+    const Vec3f d = wi - wo;
+    denom = (T(1.f) + g) * (T(1.f) + g) - g * dot(d, d);
+  }
   return (T(1.f) - g * g) / (4.f * kPi * denom * sqrt(denom));
 }
 
