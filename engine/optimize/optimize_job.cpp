@@ -460,18 +460,6 @@ void resize_param(Param& p, const Stage& s) {
   p.grad.assign(p.value.size(), 0.f);
 }
 
-// A log parametrization's floor: values below it enter log space as kLogFloor.
-constexpr float kLogFloor = 1e-6f;
-
-// In place: value x → u = ln max(x, kLogFloor) and gradient df/dx → df/du = df/dx · max(x, kLogFloor).
-void to_log_space(std::vector<float>& value, std::vector<float>& grad) {
-  for (size_t i = 0; i < value.size(); ++i) {
-    const float x = std::max(value[i], kLogFloor);
-    grad[i] *= x;
-    value[i] = std::log(x);
-  }
-}
-
 // Root-mean-square difference of `values` (laid out as parameter a) and parameter b after
 // resampling both to (w, h) (images) or to b's size (grids).
 double rmse(const Param& a, const std::vector<float>& values, const Param& b, int w, int h) {

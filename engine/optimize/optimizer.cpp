@@ -9,6 +9,14 @@
 
 namespace bl {
 
+void to_log_space(std::vector<float>& value, std::vector<float>& grad) {
+  for (size_t i = 0; i < value.size(); ++i) {
+    const float x = std::max(value[i], kLogFloor);
+    grad[i] *= x;
+    value[i] = std::log(x);
+  }
+}
+
 void Adam::reset(size_t size) {
   if (s_.bf16_moments) {
     m16.assign(size, 0);

@@ -78,6 +78,11 @@ class Adam {
   int global_t_ = 0;  // steps overall (learning-rate decay)
 };
 
+// A log parametrization's floor: values below it enter log space as kLogFloor.
+inline constexpr float kLogFloor = 1e-6f;
+// In place: value x → u = ln max(x, kLogFloor) and gradient df/dx → df/du = df/dx · max(x, kLogFloor).
+void to_log_space(std::vector<float>& value, std::vector<float>& grad);
+
 // `backlight optimize CONFIG [--resume DIR]`: returns the process exit code. A non-empty
 // `resume_dir` continues the run whose outputs are in that directory.
 int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet);
