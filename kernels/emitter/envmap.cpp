@@ -37,7 +37,11 @@ int Distribution1D::sample(float u, float* u_remapped) const {
 
 Vec2f Environment::direction_to_uv(const Vec3f& d) {
   float u = 0.5f + std::atan2(d.x, -d.z) * (0.5f * kInvPi);
-  float v = std::acos(std::clamp(d.y, -1.f, 1.f)) * kInvPi;
+  // θ by atan2 of the distance from the axis and d.y, not acos(d.y): near the poles a float d.y
+  // keeps almost nothing of θ (2.4e-4 rad off within 1e-3 rad of a pole, a sixth of a row of a
+  // 2048-row map), so light samples drawn in one row were looked up (radiance, pdf) in another: a
+  // 3-row sun at the zenith of an 8192-row map came out 3.2% too bright; now ≤ 1.4e-8 rad.
+  float v = std::atan2(std::sqrt(d.x * d.x + d.z * d.z), d.y) * kInvPi;
   return {u, v};
 }
 

@@ -3,7 +3,7 @@
 // | parameter            | type              | differentiable |
 // | environment.radiance | [H, W, 3] or RGB  | yes            |
 // | scale                | float             | no             |
-// Direction d (+y up) ↔ (u, v): u = 0.5 + atan2(d.x, −d.z)/(2π), v = acos(d.y)/π; row 0 is the
+// Direction d (+y up) ↔ (u, v): u = 0.5 + atan2(d.x, −d.z)/(2π), v = θ/π (θ = atan2(√(x² + z²), y)); row 0 is the
 // zenith. A texel is constant over its (u, v) cell (nearest lookup), so sampling a texel with
 // probability ∝ luminance · sin θ and then uniformly in its cell gives a pdf proportional to the
 // emitted luminance: the sampler is exact, which the chi-square test checks.
@@ -47,7 +47,7 @@ struct Environment {
   // Rebuilds the sampling distribution from the current parameter values (detached).
   void prepare(const ParamStore& s);
 
-  // Where dir reads the map: one direction → (u, v) conversion (atan2 and acos) that eval, pdf
+  // Where dir reads the map: one direction → (u, v) conversion (two atan2) that eval, pdf
   // and backprop of the same direction can share.
   EnvLookup lookup(const Vec3f& dir) const {
     EnvLookup l;

@@ -235,3 +235,22 @@ TEST_CASE("the bilinear mode is Mitsuba 3's envmap lookup", "[emitter][envmap]")
   const Environment nearest = make_environment(other, map, true, 1.f, false);
   CHECK(std::abs(nearest.eval<double>(other, sun)[0] - at_sun[0]) > 1.0);
 }
+
+TEST_CASE("environment lookups keep the polar angle near the poles", "[emitter][envmap]") {
+  // v = θ/π of the direction as stored, against θ in long double: acos(d.y) lost θ near the poles
+  // (2.4e-4 rad within 1e-3 rad of one: a light sample drawn in one row of a large map was looked up
+  // in another; a 3-row sun at the zenith of an 8192-row map came out 3.2% too bright).
+  double worst = 0;
+  for (double theta : {1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 0.1, 1.0, M_PI - 1e-2, M_PI - 1e-4, M_PI - 1e-6})
+    for (double phi : {0.1, 1.3, 2.9, 4.4}) {
+      const Vec3f d(float(std::sin(theta) * std::cos(phi)), float(std::cos(theta)),
+                    float(std::sin(theta) * std::sin(phi)));
+      const long double x = d.x, y = d.y, z = d.z;
+      const long double exact = std::atan2(std::sqrt(x * x + z * z), y);
+      const double err = double(std::abs((long double)Environment::direction_to_uv(d).y * M_PIl - exact));
+      INFO("theta " << theta << " phi " << phi << ": error " << err << " rad");
+      CHECK(err < 1e-6);
+      worst = std::max(worst, err);
+    }
+  std::printf("environment polar angle: worst error %.3g rad\n", worst);
+}
