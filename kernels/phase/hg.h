@@ -59,7 +59,7 @@ T hg_eval(const HgParams<T>& p, const Vec3f& wi, const Vec3f& wo) {
 inline PhaseSample hg_sample(const HgParams<float>& p, const Vec3f& wi, Vec2f u) {
   const float g = hg_clamp_g(p.g);
   float cos_theta, sin_theta;
-  if (g == 0.f) {
+  if (g == 0.f) {  // the general form gives 2ξ − 1 here: the same distribution, kept for the samples it drew
     cos_theta = 1.f - 2.f * u.x;
     sin_theta = std::sqrt(std::max(0.f, 1.f - cos_theta * cos_theta));
   } else {
