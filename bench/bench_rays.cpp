@@ -130,7 +130,7 @@ int main(int argc, char** argv) {
         out.ray.direction = d;
         return;
       }
-      EmitterSample es = scene->sample_area_emitter(0, p, {s.get(8), s.get(9)});
+      EmitterSample es = scene->sample_area_emitter(0, p, s.get_double(8), s.get_double(9));
       if (es.pdf <= 0) {
         es.wi = normalize(Vec3f(0, 1, 0) - p);
         es.distance = 1;

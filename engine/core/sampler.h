@@ -15,6 +15,8 @@ inline uint64_t mix64(uint64_t z) {
 
 // Top 24 bits → float in [0, 1): exactly representable, never 1.
 inline float bits_to_unit_float(uint64_t h) { return float(h >> 40) * (1.0f / 16777216.0f); }
+// Top 53 bits → double in [0, 1): the same leading 24 bits as bits_to_unit_float, 29 more.
+inline double bits_to_unit_double(uint64_t h) { return double(h >> 11) * (1.0 / 9007199254740992.0); }
 
 // The random stream of one camera path.
 class PathSampler {
@@ -24,6 +26,11 @@ class PathSampler {
   // The dimension-th number of this path.
   float get(uint32_t dimension) const {
     return bits_to_unit_float(mix64(key_ ^ (uint64_t(dimension) * 0xd1b54a32d192ed03ull)));
+  }
+  // The same number to 53 bits, for choices among many bins (Distribution1D): a float's 24 bits
+  // cannot tell apart bins of probability ~1e-7.
+  double get_double(uint32_t dimension) const {
+    return bits_to_unit_double(mix64(key_ ^ (uint64_t(dimension) * 0xd1b54a32d192ed03ull)));
   }
   uint64_t key() const { return key_; }
 

@@ -400,11 +400,11 @@ struct MediumLightSample {
   }
 };
 inline MediumLightSample medium_light_sample(const Scene& scene, const Vec3f& x, const Vec3f& wi,
-                                             const HgParams<float>& phase, float u_select, const Vec2f& u) {
+                                             const HgParams<float>& phase, float u_select, double u0, double u1) {
   MediumLightSample s;
   const int area_count = int(scene.area_emitters.size());
   s.chosen = std::min(int(u_select * float(scene.emitter_count())), scene.emitter_count() - 1);
-  s.es = s.chosen < area_count ? scene.sample_area_emitter(s.chosen, x, u) : scene.environment.sample(u);
+  s.es = s.chosen < area_count ? scene.sample_area_emitter(s.chosen, x, u0, u1) : scene.environment.sample(u0, u1);
   if (!(s.es.pdf > 0.f)) return s;
   s.tmax = std::isinf(s.es.distance) ? std::numeric_limits<float>::infinity() : length(s.es.point - x) * (1.f - 1e-3f);
   const float light_pdf = s.es.pdf * scene.emitter_select_probability();
@@ -434,8 +434,8 @@ inline Vec3f medium_light_derivative(const Scene& scene, const Medium& med, int 
   if (!(rng.next() < q)) return {};
   const HgParams<float> phase = med.phase<float>(scene.params);
   const float u_select = rng.next();
-  const Vec2f u{rng.next(), rng.next()};
-  const MediumLightSample ls = medium_light_sample(scene, x, wi, phase, u_select, u);
+  const double u0 = rng.next_double(), u1 = rng.next_double();
+  const MediumLightSample ls = medium_light_sample(scene, x, wi, phase, u_select, u0, u1);
   if (!(ls.es.pdf > 0.f)) return {};
   const ShadowWalk<float> walk = shadow_transmittance<float>(scene, x, ls.es.wi, ls.tmax, medium, rng, true);
   if (walk.blocked || walk.transmittance == 0.f) return {};
@@ -539,7 +539,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
         if (has_emitters && observer.nee_may_contribute(vertex)) {
           const MediumLightSample ls = medium_light_sample(
               scene, p, wi_phase, phase_detached, sampler.get(Dim::at(vertex, Dim::kLightSelect)),
-              {sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))});
+              sampler.get_double(Dim::at(vertex, Dim::kLightU)), sampler.get_double(Dim::at(vertex, Dim::kLightV)));
           const EmitterSample& es = ls.es;
           if (es.pdf > 0.f) {
             const T f = hg_eval(phase, wi_phase, es.wi);
@@ -669,8 +669,10 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
     if (has_emitters && observer.nee_may_contribute(vertex)) {
       int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
                             scene.emitter_count() - 1);
-      Vec2f u{sampler.get(Dim::at(vertex, Dim::kLightU)), sampler.get(Dim::at(vertex, Dim::kLightV))};
-      EmitterSample es = chosen < area_count ? scene.sample_area_emitter(chosen, sp.p, u) : scene.environment.sample(u);
+      const double u0 = sampler.get_double(Dim::at(vertex, Dim::kLightU)),
+                   u1 = sampler.get_double(Dim::at(vertex, Dim::kLightV));
+      EmitterSample es =
+          chosen < area_count ? scene.sample_area_emitter(chosen, sp.p, u0, u1) : scene.environment.sample(u0, u1);
       if (es.pdf > 0.f) {
         const Vec3f wi = frame.to_local(es.wi);
         Spectrum<T> f = bsdf.eval(wo, wi);

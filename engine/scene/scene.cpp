@@ -75,10 +75,7 @@ void Scene::prepare_geometry() {
     if (!std::isfinite(float(total)))
       throw InputError(source + ": emitter '" + m.name + "': its total area exceeds float's range");
     e.total_area = float(total);
-    e.triangle_cdf.resize(areas.size());
-    double run = 0;
-    for (size_t t = 0; t < areas.size(); ++t) e.triangle_cdf[t] = float((run += areas[t]) / total);
-    if (!e.triangle_cdf.empty()) e.triangle_cdf.back() = 1.f;
+    e.triangles.build(areas);
   }
   geometry = std::make_unique<Geometry>();
   geometry->build(meshes);
@@ -226,16 +223,15 @@ SurfacePoint Scene::surface_point(const Hit& hit, const Ray& ray) const {
   return sp;
 }
 
-EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, Vec2f u) const {
+EmitterSample Scene::sample_area_emitter(int index, const Vec3f& ref, double u0, double u1) const {
   const AreaEmitter& e = area_emitters[size_t(index)];
   const Mesh& m = meshes[size_t(e.mesh)];
-  // Pick a triangle by area with u.x, then reuse the remainder of u.x inside it.
-  size_t t = size_t(std::lower_bound(e.triangle_cdf.begin(), e.triangle_cdf.end(), u.x) - e.triangle_cdf.begin());
-  t = std::min(t, e.triangle_cdf.size() - 1);
-  float lo = t == 0 ? 0.f : e.triangle_cdf[t - 1], hi = e.triangle_cdf[t];
-  float ux = hi > lo ? std::clamp((u.x - lo) / (hi - lo), 0.f, 1.f) : 0.f;
+  // Pick a triangle by area with u0, then reuse the remainder of u0 inside it.
+  float ux = 0.f;
+  const size_t t = e.triangles.sample(u0, &ux);
+  const float uy = std::min(float(u1), std::nextafter(1.f, 0.f));
   // Uniform point on the triangle (square-root parameterisation).
-  float su = std::sqrt(ux), b1 = 1.f - su, b2 = u.y * su, b0 = 1.f - b1 - b2;
+  float su = std::sqrt(ux), b1 = 1.f - su, b2 = uy * su, b0 = 1.f - b1 - b2;
   const uint32_t i0 = m.indices[3 * t], i1 = m.indices[3 * t + 1], i2 = m.indices[3 * t + 2];
   EmitterSample s;
   s.point = m.positions[i0] * b0 + m.positions[i1] * b1 + m.positions[i2] * b2;

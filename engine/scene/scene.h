@@ -165,8 +165,9 @@ struct Scene {
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }
-  // Samples a point on area emitter `index` uniformly by area.
-  EmitterSample sample_area_emitter(int index, const Vec3f& ref, Vec2f u) const;
+  // Samples a point on area emitter `index` uniformly by area: u0 (53 bits, PathSampler::get_double)
+  // picks the triangle and places the point with u1.
+  EmitterSample sample_area_emitter(int index, const Vec3f& ref, double u0, double u1) const;
   // Whether a non-null surface blocks o + t·d for t < tmax (null surfaces let rays through).
   bool occluded(const Vec3f& o, const Vec3f& d, float tmax) const;
   // The medium a ray travelling along `d` is in after crossing (or leaving) mesh `m` at a point

@@ -6,6 +6,7 @@
 // solid-angle pdf is d² / (A cos θ_emitter).
 #include <vector>
 
+#include "engine/core/distribution.h"
 #include "kernels/emitter/emitter.h"
 #include "kernels/texture/texture.h"
 
@@ -14,7 +15,7 @@ namespace bl {
 struct AreaEmitter {
   int mesh = -1;
   TextureSlot radiance;
-  std::vector<float> triangle_cdf;  // normalised cumulative areas
+  Distribution1D triangles;  // by area
   float total_area = 0.f;
 
   // Radiance towards a viewer at cosine `cos_normal_to_viewer` with the shading normal.

@@ -6,35 +6,6 @@
 
 namespace bl {
 
-void Distribution1D::build(const std::vector<double>& weights) {
-  const size_t n = weights.size();
-  cdf.assign(n + 1, 0.f);
-  pmf.assign(n, 0.f);
-  double sum = 0;
-  for (double w : weights) sum += std::max(0.0, w);
-  total = float(sum);
-  double running = 0;
-  for (size_t i = 0; i < n; ++i) {
-    double w = sum > 0 ? std::max(0.0, weights[i]) / sum : 1.0 / double(n);
-    pmf[i] = float(w);
-    running += w;
-    cdf[i + 1] = float(running);
-  }
-  cdf[n] = 1.f;
-}
-
-int Distribution1D::sample(float u, float* u_remapped) const {
-  // First bin whose upper CDF bound exceeds u, skipping empty bins.
-  auto it = std::upper_bound(cdf.begin() + 1, cdf.end(), u);
-  int i = int(std::min<ptrdiff_t>(it - cdf.begin() - 1, ptrdiff_t(pmf.size()) - 1));
-  while (pmf[size_t(i)] == 0.f && i > 0) --i;
-  if (u_remapped) {
-    float w = pmf[size_t(i)];
-    *u_remapped = w > 0 ? std::clamp((u - cdf[size_t(i)]) / w, 0.f, std::nextafter(1.f, 0.f)) : 0.f;
-  }
-  return i;
-}
-
 Vec2f Environment::direction_to_uv(const Vec3f& d) {
   float u = 0.5f + std::atan2(d.x, -d.z) * (0.5f * kInvPi);
   // θ by atan2 of the distance from the axis and d.y, not acos(d.y): near the poles a float d.y
@@ -114,19 +85,18 @@ void Environment::prepare(const ParamStore& s) {
   rows.build(row_weights);
 }
 
-EmitterSample Environment::sample(Vec2f u) const {
+EmitterSample Environment::sample(double u0, double u1) const {
   EmitterSample s;
   s.distance = std::numeric_limits<float>::infinity();
   if (!is_map) {
     // Uniform sphere.
-    float z = 1.f - 2.f * u.x, r = std::sqrt(std::max(0.f, 1.f - z * z)), phi = 2.f * kPi * u.y;
+    const float z = float(1.0 - 2.0 * u0), r = std::sqrt(std::max(0.f, 1.f - z * z)), phi = float(2.0 * M_PI * u1);
     s.wi = {r * std::cos(phi), z, r * std::sin(phi)};
     s.pdf = 1.f / (4.f * kPi);
     return s;
   }
   float uy, ux;
-  int row = rows.sample(u.y, &uy);
-  int col = cols[size_t(row)].sample(u.x, &ux);
+  const size_t row = rows.sample(u1, &uy), col = cols[row].sample(u0, &ux);
   Vec2f uv{(float(col) + ux) / float(width), (float(row) + uy) / float(height)};
   if (bilinear) {  // the cell's u' = u − ½ and v = row / (H − 1)
     uv = {(float(col) + ux) / float(width) + 0.5f, (float(row) + uy) / float(height - 1)};
@@ -148,7 +118,7 @@ float Environment::pdf(const Vec3f& dir, const EnvLookup& l) const {
   float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
   if (sin_theta <= 0.f) return 0.f;
   float p_uv =
-      rows.pmf[size_t(row)] * cols[size_t(row)].pmf[size_t(col)] * float(width) * float(bilinear ? height - 1 : height);
+      rows.pmf(size_t(row)) * cols[size_t(row)].pmf(size_t(col)) * float(width) * float(bilinear ? height - 1 : height);
   return p_uv / (2.f * kPi * kPi * sin_theta);
 }
 

@@ -19,20 +19,11 @@
 #include <utility>
 #include <vector>
 
+#include "engine/core/distribution.h"
 #include "kernels/emitter/emitter.h"
 #include "kernels/texture/texture.h"
 
 namespace bl {
-
-// Piecewise-constant 1D distribution: sample by inverting the CDF.
-struct Distribution1D {
-  std::vector<float> cdf;  // size n + 1, cdf[0] = 0, cdf[n] = 1
-  std::vector<float> pmf;  // probability of each bin
-  float total = 0.f;
-  void build(const std::vector<double>& weights);
-  int sample(float u, float* u_remapped) const;  // bin index; u rescaled to [0,1) within the bin
-  size_t size() const { return pmf.size(); }
-};
 
 struct Environment {
   bool present = false;
@@ -95,7 +86,8 @@ struct Environment {
     const size_t base = texel_index(l) * 3;
     for (int c = 0; c < 3; ++c) grads.add(param, base + size_t(c), adjoint[c] * scale);
   }
-  EmitterSample sample(Vec2f u) const;
+  // u0 picks the column, u1 the row: 53-bit uniforms (PathSampler::get_double).
+  EmitterSample sample(double u0, double u1) const;
   float pdf(const Vec3f& dir) const { return pdf(dir, lookup(dir)); }
   float pdf(const Vec3f& dir, const EnvLookup& l) const;  // l = lookup(dir)
 

@@ -36,6 +36,8 @@ class TrackingSampler {
   TrackingSampler(uint64_t path_key, int vertex, uint32_t stream)
       : key_(mix64(path_key ^ mix64((uint64_t(uint32_t(vertex)) << 32 | stream) + 0x7472616b696e6721ull))) {}
   float next() { return bits_to_unit_float(mix64(key_ + (++counter_) * 0x9e3779b97f4a7c15ull)); }
+  // The next number to 53 bits (a light sample's choice of triangle or texel: Distribution1D).
+  double next_double() { return bits_to_unit_double(mix64(key_ + (++counter_) * 0x9e3779b97f4a7c15ull)); }
   uint64_t draws() const { return counter_; }
 
  private:

@@ -61,7 +61,7 @@ Chi2Result chi2_environment(const Environment& env, const std::string& label, ui
   return chi2_test(
       latlong_sphere(),
       [&](float, Vec2f u) {
-        const EmitterSample s = env.sample(u);
+        const EmitterSample s = env.sample(u.x, u.y);
         return DirectionSample{s.wi, s.pdf};
       },
       [&](const Vec3f& w) { return env.pdf(w); }, opt);
