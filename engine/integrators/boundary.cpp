@@ -170,7 +170,8 @@ GeometryGradient primary_boundary_gradient(const Scene& scene, const Image& adjo
     } advance{progress, range.size()};
     for (uint64_t k = range.begin(); k != range.end(); ++k) {
       const PathSampler sampler(options.seed, k, kEdgeStream);
-      const double u = double(sampler.get(Dim::kPixelX)) * total;
+      // 53 bits, as for light samples (engine/core/distribution.h): edges by the 10⁵ are ~1e-6 each.
+      const double u = sampler.get_double(Dim::kPixelX) * total;
       const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
       const Projected& pr = projected[pick];
       const double s = pr.t0 + double(sampler.get(Dim::kPixelY)) * (pr.t1 - pr.t0);

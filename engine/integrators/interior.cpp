@@ -600,7 +600,7 @@ void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<do
     for (int j = 0; j < es.samples; ++j) {
       uint32_t pick = 0;
       double probability = 0;
-      if (!edges::sample_edge(table, tree, v.p, double(edge_rng.get(2 * j)), &pick, &probability)) continue;
+      if (!edges::sample_edge(table, tree, v.p, edge_rng.get_double(2 * j), &pick, &probability)) continue;
       const edges::MeshEdge& e = table.edges[pick];
       if (!edges::candidate_from(scene, e, v.p)) continue;  // no discontinuity seen from x
       const double len = double(length(e.p1 - e.p0));
@@ -621,7 +621,7 @@ void edge_sample(const EdgeSampling& es, const PathVertex& v, const MovingHit<do
     }
   if (!(total > 0)) return;
   for (int j = 0; j < es.samples; ++j) {
-    const double u = double(edge_rng.get(2 * j)) * total;
+    const double u = edge_rng.get_double(2 * j) * total;
     const size_t pick = std::min(size_t(std::upper_bound(cdf.begin(), cdf.end(), u) - cdf.begin()), cdf.size() - 1);
     one_edge_sample(es, v, h, a, table, table.edges[index[pick]], double(edge_rng.get(2 * j + 1)), total / es.samples,
                     pixel, stream ^ (uint64_t(j) << 40), vertex, acc, adj_x);
