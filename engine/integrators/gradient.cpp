@@ -155,13 +155,16 @@ void check_geometry_view(const Scene& scene, int camera) {
   const CameraPose* pose = nullptr;
   const std::vector<int> meshes = moving_meshes(scene, camera, &camera_moves, &pose);
   const Camera& cam = scene.cameras.at(size_t(camera));
-  // A rotating camera turns the environment it sees directly: its texels sweep across the film, a
-  // change no term estimates yet (a constant environment does not change).
+  // A rotating camera turns the environment it sees directly: a bilinear map's radiance changes
+  // smoothly with the direction (an interior term, path_geometry_gradient), but the nearest
+  // lookup's texels are constant patches whose edges sweep across the film, jumps no term samples
+  // (a constant environment does not change).
   if (camera_moves && wants(scene.params, pose->rotate) && scene.environment.present && scene.environment.is_map &&
-      !scene.settings.hide_emitters)
+      !scene.environment.bilinear && !scene.settings.hide_emitters)
     throw InputError(where + "the rotation of camera '" + cam.name +
-                     "' with an environment map in view is not supported yet (the map's texels move across the film; "
-                     "a constant environment or hide_emitters is)");
+                     "' with an environment map in view is not supported for the map's nearest lookup (its texel "
+                     "edges move across the film); \"convention\": \"mitsuba\" (bilinear), a constant environment or "
+                     "hide_emitters is");
   // The near plane cuts a moving triangle in view, or any when the camera moves: the cut is an
   // edge of the image that is no mesh edge, which the boundary terms do not sample.
   const double hx = double(cam.tan_x) * double(cam.near_clip), hy = double(cam.tan_y) * double(cam.near_clip);

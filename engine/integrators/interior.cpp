@@ -52,7 +52,9 @@ struct VertexRecorder : NoObserver {
   std::vector<PathVertex>* path = nullptr;
   int current = 0;
   bool escaped = false;
-  Vec3f next_beta{1.f};  // throughput of the next vertex
+  Vec3f next_beta{1.f};        // throughput of the next vertex
+  bool camera_escape = false;  // the camera ray itself reached the environment, along:
+  Vec3f camera_escape_direction;
 
   void reached(int vertex, int site) {
     current = vertex;
@@ -75,7 +77,13 @@ struct VertexRecorder : NoObserver {
     v.uv = sp.uv;
   }
   void emission(const EmissionRef& ref, const Vec3f&, const Vec3f& contribution) {
-    if (current <= 1) return;  // seen from the camera: weight 1
+    if (current <= 1) {  // seen from the camera: weight 1
+      if (escaped) {
+        camera_escape = true;
+        camera_escape_direction = ref.direction;
+      }
+      return;
+    }
     if (escaped) {
       PathVertex& v = (*path)[size_t(current - 2)];
       v.escape = true;
@@ -705,8 +713,16 @@ GeometryGradient path_geometry_gradient(const Scene& scene, const Image& adjoint
           recorder.current = 0;
           recorder.escaped = false;
           recorder.next_beta = Vec3f(1.f);
+          recorder.camera_escape = false;
           const Vec3f radiance = trace_path<float>(scene, start, sampler, recorder);
           const size_t n = path.size();
+          // The sky seen by the camera turns with it: the radiance along d + ω × d, whose
+          // derivative in ω is d × ∇_d (a linear term in ω, the same closed form for the taped mode).
+          // Only a bilinear map has one (check_geometry_view refuses the nearest lookup's).
+          if (n == 0 && recorder.camera_escape && options.camera_moves && options.interior) {
+            const Vec3d d(recorder.camera_escape_direction);
+            acc.camera_rotate += cross(d, scene.environment.direction_gradient(scene.params, Vec3f(d), a));
+          }
           if (n == 0) continue;
           hits.resize(n);
           boundary_x.assign(n, Vec3d(0.0));

@@ -56,7 +56,8 @@ struct PathGeometryOptions {
 // and rotation) for F = Σ_p ⟨adjoint_p, I_p⟩ (`adjoint` has the camera's size and 3 channels),
 // from `spp` camera paths per pixel; with the primary-visibility term (boundary.h) it is the
 // whole derivative. The camera fields are direct derivatives (the camera's rays move with it, the
-// environment stays); they are complete only with camera_moves.
+// environment stays, so a bilinear map seen directly turns across the film: its radiance's
+// direction gradient, Environment::direction_gradient); they are complete only with camera_moves.
 //
 // Secondary visibility: at each surface vertex x below the maximum depth, `edge_samples` points p
 // on the edges that are discontinuities seen from x (edges of the meshes that get gradients, or of

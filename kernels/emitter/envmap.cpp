@@ -85,6 +85,30 @@ void Environment::prepare(const ParamStore& s) {
   rows.build(row_weights);
 }
 
+Vec3d Environment::direction_gradient(const ParamStore& s, const Vec3f& dir, const Vec3d& adjoint) const {
+  if (!present || !is_map || !bilinear) return Vec3d(0.0);
+  const double x = double(dir.x), y = double(dir.y), z = double(dir.z);
+  const double rho2 = x * x + z * z, r2 = rho2 + y * y;
+  if (!(rho2 > 0.0)) return Vec3d(0.0);
+  const double rho = std::sqrt(rho2);
+  const EnvLookup l = lookup(dir);
+  const Taps taps = bilinear_taps(l);
+  const Param& p = s[param];
+  double q[4];  // ⟨adjoint, texel k⟩
+  for (int k = 0; k < 4; ++k) {
+    const size_t b = taps.texel[k] * 3;
+    q[k] = adjoint.x * double(p.value[b]) + adjoint.y * double(p.value[b + 1]) + adjoint.z * double(p.value[b + 2]);
+  }
+  // Weights (1 − fx)(1 − fy), fx(1 − fy), (1 − fx)fy, fx·fy (bilinear_taps) with fx = W·φ/(2π) − col,
+  // fy = (H − 1)·θ/π − row, φ = atan2(x, −z), θ = atan2(ρ, y).
+  const double fx = double(l.fx), fy = double(l.fy);
+  const double d_fx = (1.0 - fy) * (q[1] - q[0]) + fy * (q[3] - q[2]);
+  const double d_fy = (1.0 - fx) * (q[2] - q[0]) + fx * (q[3] - q[1]);
+  const Vec3d d_phi(-z / rho2, 0.0, x / rho2);
+  const Vec3d d_theta(x * y / (rho * r2), -rho / r2, z * y / (rho * r2));
+  return (d_phi * (d_fx * double(width) / (2.0 * M_PI)) + d_theta * (d_fy * double(height - 1) / M_PI)) * double(scale);
+}
+
 EmitterSample Environment::sample(double u0, double u1) const {
   EmitterSample s;
   s.distance = std::numeric_limits<float>::infinity();

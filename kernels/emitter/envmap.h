@@ -86,6 +86,11 @@ struct Environment {
     const size_t base = texel_index(l) * 3;
     for (int c = 0; c < 3; ++c) grads.add(param, base + size_t(c), adjoint[c] * scale);
   }
+  // ∇_d ⟨adjoint, eval(d)⟩ for the bilinear lookup, in world space: how the radiance seen along d
+  // changes as d turns (a rotating camera's view of the sky). The lookup reads d's direction only,
+  // so the gradient is orthogonal to d. Zero for a constant environment (nothing changes) and for
+  // the nearest lookup, whose changes are jumps at texel edges, not a gradient. Zero at the poles.
+  Vec3d direction_gradient(const ParamStore& s, const Vec3f& dir, const Vec3d& adjoint) const;
   // u0 picks the column, u1 the row: 53-bit uniforms (PathSampler::get_double).
   EmitterSample sample(double u0, double u1) const;
   float pdf(const Vec3f& dir) const { return pdf(dir, lookup(dir)); }

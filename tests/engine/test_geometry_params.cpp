@@ -277,6 +277,28 @@ TEST_CASE("geometry parameter gradients against finite differences, away from th
   check_direction(*scene, "front.rotate", {0.2f, 1.f, 0.1f}, 0.01, {.seeds = 16, .spp = 16});
 }
 
+// [expectation]: as above. A camera turning in front of a bilinear environment map (Mitsuba's
+// convention) sees the sky's radiance change along d + ω × d: the interior term's share of
+// front.rotate (refused before; without it the gradient misses the sky's part: z 43 and 16).
+TEST_CASE("a camera's rotation gradient with a bilinear environment map in view", "[geometry][expectation]") {
+  const std::string dir = test::temp_dir("geometry-params-sky");
+  Image sky(32, 16, 3);
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 32; ++x) {
+      const double phi = 2 * M_PI * x / 32, theta = M_PI * y / 15;
+      const double blob = 6.0 * std::exp(-((x - 9) * (x - 9) + (y - 9) * (y - 9)) / 4.0);
+      for (int c = 0; c < 3; ++c)
+        sky.at(x, y, c) = float(0.6 + 0.3 * std::sin(2 * phi + c) * std::sin(theta) + 0.2 * std::cos(3 * theta) + blob);
+    }
+  write_image(dir + "/sky.exr", sky);
+  nlohmann::json j = pose_scene();
+  j["environment"] = {{"type", "envmap"}, {"file", "sky.exr"}, {"convention", "mitsuba"}};
+  auto scene = build_json_scene(j, dir + "/scene.json");
+  set_value(*scene, scene->params.find("front.rotate"), {0.02f, -0.05f, 0.f});
+  check_direction(*scene, "front.rotate", {0.2f, 1.f, 0.1f}, 0.01, {.seeds = 16, .spp = 16});
+  check_direction(*scene, "front.rotate", {1.f, 0.f, 0.3f}, 0.01, {.seeds = 16, .spp = 16});
+}
+
 // [expectation]: as above.
 TEST_CASE("vertex position gradients against finite differences, away from the identity pose",
           "[geometry][expectation]") {
