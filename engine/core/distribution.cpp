@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
 
 namespace bl {
 
@@ -10,6 +11,7 @@ void Distribution1D::build(const std::vector<double>& weights) {
   cdf.assign(n + 1, 0.0);
   double sum = 0.0;
   for (double w : weights) sum += std::max(0.0, w);  // std::max(0.0, NaN) is 0
+  if (!std::isfinite(sum)) throw std::invalid_argument("Distribution1D: the weights' sum is not finite");
   total = sum;
   const bool uniform = !(sum > 0.0);
   const double norm = uniform ? double(n) : sum;

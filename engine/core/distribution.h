@@ -17,10 +17,12 @@ struct Distribution1D {
   std::vector<double> cdf;  // size n + 1: cdf[0] = 0, cdf[n] = 1, non-decreasing (an empty bin repeats)
   double total = 0.0;       // the sum of the weights (negative ones and NaN count as 0)
 
-  // Weights ≤ 0 (or NaN) give empty bins; all empty: uniform over the bins.
+  // Weights ≤ 0 (or NaN) give empty bins; all empty: uniform over the bins. The weights and their
+  // sum must be finite (an infinite one would make the CDF NaN): callers' inputs are validated
+  // finite (parameters, areas), and build throws std::invalid_argument otherwise.
   void build(const std::vector<double>& weights);
   size_t size() const { return cdf.empty() ? 0 : cdf.size() - 1; }
-  // The probability of bin i: the CDF's step, exactly what sample draws it with (to 2⁻⁵³).
+  // The probability of bin i: the CDF's step, what sample draws it with (to 4·2⁻⁵³), as a float.
   float pmf(size_t i) const { return float(cdf[i + 1] - cdf[i]); }
   // n ≥ 1. The bin with cdf[i] ≤ u < cdf[i + 1] (never an empty one) for u in [0, 1); u's position in it,
   // rescaled to [0, 1), goes to *u_remapped.

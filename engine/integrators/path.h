@@ -400,10 +400,10 @@ struct MediumLightSample {
   }
 };
 inline MediumLightSample medium_light_sample(const Scene& scene, const Vec3f& x, const Vec3f& wi,
-                                             const HgParams<float>& phase, float u_select, double u0, double u1) {
+                                             const HgParams<float>& phase, double u_select, double u0, double u1) {
   MediumLightSample s;
   const int area_count = int(scene.area_emitters.size());
-  s.chosen = std::min(int(u_select * float(scene.emitter_count())), scene.emitter_count() - 1);
+  s.chosen = scene.choose_emitter(u_select);
   s.es = s.chosen < area_count ? scene.sample_area_emitter(s.chosen, x, u0, u1) : scene.environment.sample(u0, u1);
   if (!(s.es.pdf > 0.f)) return s;
   s.tmax = std::isinf(s.es.distance) ? std::numeric_limits<float>::infinity() : length(s.es.point - x) * (1.f - 1e-3f);
@@ -433,7 +433,7 @@ inline Vec3f medium_light_derivative(const Scene& scene, const Medium& med, int 
   TrackingSampler rng(path_key, int(flight), 0x20000u + collision);
   if (!(rng.next() < q)) return {};
   const HgParams<float> phase = med.phase<float>(scene.params);
-  const float u_select = rng.next();
+  const double u_select = rng.next_double();
   const double u0 = rng.next_double(), u1 = rng.next_double();
   const MediumLightSample ls = medium_light_sample(scene, x, wi, phase, u_select, u0, u1);
   if (!(ls.es.pdf > 0.f)) return {};
@@ -538,7 +538,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
         if (has_emitters && observer.nee_may_contribute(vertex)) {
           const MediumLightSample ls = medium_light_sample(
-              scene, p, wi_phase, phase_detached, sampler.get(Dim::at(vertex, Dim::kLightSelect)),
+              scene, p, wi_phase, phase_detached, sampler.get_double(Dim::at(vertex, Dim::kLightSelect)),
               sampler.get_double(Dim::at(vertex, Dim::kLightU)), sampler.get_double(Dim::at(vertex, Dim::kLightV)));
           const EmitterSample& es = ls.es;
           if (es.pdf > 0.f) {
@@ -667,8 +667,7 @@ Spectrum<T> trace_path(const Scene& scene, const PathStart& start, const PathSam
 
     // Next-event estimation: one emitter chosen uniformly, one point on it.
     if (has_emitters && observer.nee_may_contribute(vertex)) {
-      int chosen = std::min(int(sampler.get(Dim::at(vertex, Dim::kLightSelect)) * float(scene.emitter_count())),
-                            scene.emitter_count() - 1);
+      const int chosen = scene.choose_emitter(sampler.get_double(Dim::at(vertex, Dim::kLightSelect)));
       const double u0 = sampler.get_double(Dim::at(vertex, Dim::kLightU)),
                    u1 = sampler.get_double(Dim::at(vertex, Dim::kLightV));
       EmitterSample es =

@@ -1,6 +1,7 @@
 #pragma once
 // The loaded scene: meshes in world space, materials, emitters, cameras, integrator settings and
 // the parameter store every differentiable value lives in.
+#include <algorithm>
 #include <memory>
 #include <string>
 #include <vector>
@@ -165,6 +166,9 @@ struct Scene {
   SurfacePoint surface_point(const Hit& hit, const Ray& ray) const;
   int emitter_count() const { return int(area_emitters.size()) + (environment.present ? 1 : 0); }
   float emitter_select_probability() const { return emitter_count() > 0 ? 1.f / float(emitter_count()) : 0.f; }
+  // The emitter a light sample takes, uniformly, from a 53-bit u (PathSampler::get_double): with a
+  // float's 24 bits emitter i's share is a count of 2⁻²⁴ steps, ±1 of 2²⁴/N (±0.6% at N = 10⁵).
+  int choose_emitter(double u) const { return std::min(int(u * double(emitter_count())), emitter_count() - 1); }
   // Samples a point on area emitter `index` uniformly by area: u0 (53 bits, PathSampler::get_double)
   // picks the triangle and places the point with u1.
   EmitterSample sample_area_emitter(int index, const Vec3f& ref, double u0, double u1) const;

@@ -6,7 +6,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <set>
+#include <stdexcept>
 #include <vector>
 
 #include "engine/core/distribution.h"
@@ -262,4 +264,8 @@ TEST_CASE("Distribution1D draws every bin with its weight's probability", "[samp
   check_distribution("empty bins", gappy);
   check_distribution("all empty (uniform)", std::vector<double>(1000, 0.0));
   check_distribution("one bin", {2.5});
+  // Infinite weights (or a sum beyond double's range) would make the CDF NaN: refused.
+  Distribution1D refused;
+  CHECK_THROWS_AS(refused.build({1.0, std::numeric_limits<double>::infinity(), 1.0}), std::invalid_argument);
+  CHECK_THROWS_AS(refused.build({1e308, 1e308}), std::invalid_argument);
 }
