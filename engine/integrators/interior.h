@@ -23,7 +23,8 @@
 //
 // Supported for now: diffuse surfaces (constant or bitmap albedo: a sliding point reads its
 // texture at moving uvs, the bilinear lookup's slope), constant-radiance area emitters, any
-// environment (check_geometry_view refuses a rotating camera with a map in view), no media, no
+// environment (a rotating camera seeing the sky: a bilinear map's direction gradient; the nearest
+// lookup's jumps are refused by check_geometry_view), no media, no
 // null surfaces, no vertex colours. Anything else is refused with an InputError naming what.
 #include <cstdint>
 #include <vector>

@@ -505,6 +505,11 @@ expect_error grad_geometry_env_rotate "pose_envmap.json" "rotation of camera 'fr
   grad "$tmp/pose_envmap.json" --adjoint-image "$pose_ones" --param front.rotate --spp 1 --out g_envrot
 expect_ok grad_geometry_env_origin grad "$tmp/pose_envmap.json" --adjoint-image "$pose_ones" --param front.origin \
   --spp 1 --out g_envorigin -q
+# Mitsuba's bilinear lookup has a direction gradient: the rotation is estimated (test_geometry_params).
+scene_variant "$pose" "$tmp/pose_envmap_bilinear.json" \
+  "s['environment'] = {'type': 'envmap', 'file': '$repo/scenes/smoke/sky.pfm', 'convention': 'mitsuba'}"
+expect_ok grad_geometry_env_rotate_bilinear grad "$tmp/pose_envmap_bilinear.json" --adjoint-image "$pose_ones" \
+  --param front.rotate --spp 1 --out g_envrot_bilinear -q
 expect_error set_syntax "--set" "white.albedo" -- render "$small" -o o.exr --set white.albedo
 expect_error set_corrupt_image "random.png" "unsupported image format" -- \
   render "$small" -o o.exr --set wall.albedo=small/random.png

@@ -296,4 +296,11 @@ TEST_CASE("the bilinear map's direction gradient matches finite differences of e
   ParamStore other;
   const Environment nearest = make_environment(other, structured_map(false), true, 1.5f, false);
   CHECK(length(nearest.direction_gradient(other, Vec3f(0.6f, 0.48f, 0.64f), Vec3d(1.0))) == 0.0);
+  ParamStore third;
+  Param constant;
+  constant.name = "environment.radiance";
+  constant.shape = {3};
+  constant.value = {0.5f, 1.f, 2.f};
+  const Environment uniform = make_environment(third, constant, false, 1.f);
+  CHECK(length(uniform.direction_gradient(third, Vec3f(0.6f, 0.48f, 0.64f), Vec3d(1.0))) == 0.0);
 }
