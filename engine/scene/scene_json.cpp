@@ -489,6 +489,30 @@ struct Loader {
       env.param = slot.param;
       if (env.bilinear && scene.params[env.param].height() < 2)
         n.fail_at("file", "the mitsuba convention needs an image at least 2 pixels high");
+      // The map's orientation (Mitsuba's to_world): a rotation; directions have no position.
+      if (n.has("transform")) {
+        const Transform t = transform(n.child("transform"));
+        if (t.m[0][3] != 0.f || t.m[1][3] != 0.f || t.m[2][3] != 0.f)
+          n.fail_at("transform", "an environment is infinitely far away: a translation would do nothing (remove it)");
+        double worst = 0.0;
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) {
+            double dot_ij = 0.0;
+            for (int k = 0; k < 3; ++k) dot_ij += double(t.m[k][i]) * double(t.m[k][j]);
+            worst = std::max(worst, std::abs(dot_ij - (i == j ? 1.0 : 0.0)));
+          }
+        const double det = double(t.m[0][0]) * (double(t.m[1][1]) * t.m[2][2] - double(t.m[1][2]) * t.m[2][1]) -
+                           double(t.m[0][1]) * (double(t.m[1][0]) * t.m[2][2] - double(t.m[1][2]) * t.m[2][0]) +
+                           double(t.m[0][2]) * (double(t.m[1][0]) * t.m[2][1] - double(t.m[1][1]) * t.m[2][0]);
+        if (!(worst <= 1e-4) || !(det > 0.0))
+          n.fail_at("transform", "must be a rotation (a scale, shear or mirror image would distort the sky)");
+        env.rotated = false;
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) {
+            env.rotation[i][j] = t.m[i][j];
+            env.rotated = env.rotated || t.m[i][j] != (i == j ? 1.f : 0.f);
+          }
+      }
     } else {
       n.fail_at("type", "unknown environment type '" + type + "' (expected constant or envmap)");
     }

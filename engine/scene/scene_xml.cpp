@@ -1183,19 +1183,22 @@ class XmlScene {
       // Mitsuba's lookup (bilinear, u = 0 at −z) is the environment's "mitsuba" convention; its
       // bitmap is radiance, 8-bit files sRGB-decoded.
       if (!has(p, "filename")) fail(n, "envmap needs a filename");
-      if (has(p, "to_world")) {
-        const pugi::xml_node t = get(p, "to_world");
-        const Transform m = transform(t);
-        for (int i = 0; i < 4; ++i)
-          for (int j = 0; j < 4; ++j)
-            if (std::abs(m.m[i][j] - (i == j ? 1.f : 0.f)) > 1e-6f)
-              fail(t, "envmap to_world must be the identity (rotated environments are not supported)");
-      }
       json env = {{"type", "envmap"},
                   {"file", get_file(p, "filename")},
                   {"convention", "mitsuba"},
                   {"color_space", "auto"},
                   {"scale", get_number(p, "scale", 1.0)}};
+      // to_world orients the map: its linear part turns directions (Mitsuba applies it to vectors,
+      // so a translation does nothing and is dropped); it must be a rotation (checked by the JSON
+      // loader, which names the element through origins_).
+      if (has(p, "to_world")) {
+        const Transform m = transform(get(p, "to_world"));
+        json rows = json::array();
+        for (int i = 0; i < 4; ++i)
+          rows.push_back(
+              {i < 3 ? m.m[i][0] : 0.f, i < 3 ? m.m[i][1] : 0.f, i < 3 ? m.m[i][2] : 0.f, i < 3 ? 0.f : 1.f});
+        env["transform"] = {{"matrix", rows}};
+      }
       for (const pugi::xml_node& x : p.objects) fail(x, "unexpected element in an emitter");
       finish(n, p, {"mis_compensation"});
       root_["environment"] = env;

@@ -87,7 +87,8 @@ void Environment::prepare(const ParamStore& s) {
 
 Vec3d Environment::direction_gradient(const ParamStore& s, const Vec3f& dir, const Vec3d& adjoint) const {
   if (!present || !is_map || !bilinear) return Vec3d(0.0);
-  const double x = double(dir.x), y = double(dir.y), z = double(dir.z);
+  const Vec3f local = to_local(dir);
+  const double x = double(local.x), y = double(local.y), z = double(local.z);
   const double rho2 = x * x + z * z, r2 = rho2 + y * y;
   if (!(rho2 > 0.0)) return Vec3d(0.0);
   const double rho = std::sqrt(rho2);
@@ -106,7 +107,14 @@ Vec3d Environment::direction_gradient(const ParamStore& s, const Vec3f& dir, con
   const double d_fy = (1.0 - fx) * (q[2] - q[0]) + fx * (q[3] - q[1]);
   const Vec3d d_phi(-z / rho2, 0.0, x / rho2);
   const Vec3d d_theta(x * y / (rho * r2), -rho / r2, z * y / (rho * r2));
-  return (d_phi * (d_fx * double(width) / (2.0 * M_PI)) + d_theta * (d_fy * double(height - 1) / M_PI)) * double(scale);
+  const Vec3d g =
+      (d_phi * (d_fx * double(width) / (2.0 * M_PI)) + d_theta * (d_fy * double(height - 1) / M_PI)) * double(scale);
+  if (!rotated) return g;
+  // Back to the world: ∇_d f(Rᵀd) = R ∇f.
+  Vec3d out(0.0);
+  for (int i = 0; i < 3; ++i)
+    out[i] = double(rotation[i][0]) * g.x + double(rotation[i][1]) * g.y + double(rotation[i][2]) * g.z;
+  return out;
 }
 
 EmitterSample Environment::sample(double u0, double u1) const {
@@ -115,7 +123,7 @@ EmitterSample Environment::sample(double u0, double u1) const {
   if (!is_map) {
     // Uniform sphere.
     const float z = float(1.0 - 2.0 * u0), r = std::sqrt(std::max(0.f, 1.f - z * z)), phi = float(2.0 * M_PI * u1);
-    s.wi = {r * std::cos(phi), z, r * std::sin(phi)};
+    s.wi = {r * std::cos(phi), z, r * std::sin(phi)};  // rotating a uniform sphere changes nothing
     s.pdf = 1.f / (4.f * kPi);
     return s;
   }
@@ -126,7 +134,7 @@ EmitterSample Environment::sample(double u0, double u1) const {
     uv = {(float(col) + ux) / float(width) + 0.5f, (float(row) + uy) / float(height - 1)};
     if (uv.x >= 1.f) uv.x -= 1.f;
   }
-  s.wi = uv_to_direction(uv);
+  s.wi = to_world(uv_to_direction(uv));
   s.uv = uv;
   // Where wi reads the map, from wi itself (not the sampled cell: the round trip through the
   // direction may cross into a neighbour), kept for the radiance lookup of the same direction.
@@ -139,7 +147,8 @@ float Environment::pdf(const Vec3f& dir, const EnvLookup& l) const {
   if (!is_map) return 1.f / (4.f * kPi);
   const int row = l.row, col = l.col;
   // sqrt(x² + z²), not sqrt(1 − y²): the latter rounds to 0 within ~3e-4 rad of the poles.
-  float sin_theta = std::sqrt(dir.x * dir.x + dir.z * dir.z);
+  const Vec3f d = to_local(dir);
+  float sin_theta = std::sqrt(d.x * d.x + d.z * d.z);
   if (sin_theta <= 0.f) return 0.f;
   float p_uv =
       rows.pmf(size_t(row)) * cols[size_t(row)].pmf(size_t(col)) * float(width) * float(bilinear ? height - 1 : height);

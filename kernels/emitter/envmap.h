@@ -31,6 +31,23 @@ struct Environment {
   int param = -1;  // environment.radiance
   float scale = 1.f;
   bool bilinear = false;  // Mitsuba 3's lookup (see above)
+  // An orientation (Mitsuba's to_world): the map's own frame turned by the rotation R, so a world
+  // direction d reads the map at R⁻¹d = Rᵀd and a sample drawn in the map's frame goes out along R·d.
+  // Identity unless rotated (a rotation: the loader refuses scale, shear and reflections).
+  bool rotated = false;
+  float rotation[3][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+  Vec3f to_local(const Vec3f& d) const {
+    if (!rotated) return d;
+    return {rotation[0][0] * d.x + rotation[1][0] * d.y + rotation[2][0] * d.z,
+            rotation[0][1] * d.x + rotation[1][1] * d.y + rotation[2][1] * d.z,
+            rotation[0][2] * d.x + rotation[1][2] * d.y + rotation[2][2] * d.z};
+  }
+  Vec3f to_world(const Vec3f& d) const {
+    if (!rotated) return d;
+    return {rotation[0][0] * d.x + rotation[0][1] * d.y + rotation[0][2] * d.z,
+            rotation[1][0] * d.x + rotation[1][1] * d.y + rotation[1][2] * d.z,
+            rotation[2][0] * d.x + rotation[2][1] * d.y + rotation[2][2] * d.z};
+  }
   int width = 1, height = 1;
   Distribution1D rows;               // marginal over rows
   std::vector<Distribution1D> cols;  // conditional over columns in each row
@@ -43,7 +60,8 @@ struct Environment {
   EnvLookup lookup(const Vec3f& dir) const {
     EnvLookup l;
     if (!is_map) return l;
-    std::tie(l.row, l.col) = bilinear ? cell_of(dir, &l.fx, &l.fy) : texel_of(dir);
+    const Vec3f d = to_local(dir);
+    std::tie(l.row, l.col) = bilinear ? cell_of(d, &l.fx, &l.fy) : texel_of(d);
     return l;
   }
 
@@ -105,9 +123,10 @@ struct Environment {
   };
   Taps bilinear_taps(const Vec3f& dir) const { return bilinear_taps(lookup(dir)); }
   Taps bilinear_taps(const EnvLookup& l) const;
-  // The bilinear mode's sampling cell (row, col) around dir, and its continuous sample position.
+  // The bilinear mode's sampling cell (row, col) around dir, and its continuous sample position;
+  // dir in the map's own frame (to_local).
   std::pair<int, int> cell_of(const Vec3f& dir, float* fx = nullptr, float* fy = nullptr) const;
-  std::pair<int, int> texel_of(const Vec3f& dir) const;  // (row, col) of the texel seen along dir
+  std::pair<int, int> texel_of(const Vec3f& dir) const;  // (row, col) of the texel along dir (map frame)
   static Vec2f direction_to_uv(const Vec3f& d);
   static Vec3f uv_to_direction(Vec2f uv);
 };

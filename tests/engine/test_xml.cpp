@@ -307,6 +307,7 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
 TEST_CASE("unsupported XML constructs are errors naming the plugin and the line", "[xml]") {
   const std::string dir = test::temp_dir("xml-errors");
   write(dir, "quad.obj", "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3 4\n");
+  write_image(dir + "/sky.exr", Image(4, 2, 3));
   const std::string sensor =
       "<sensor type=\"perspective\"><float name=\"fov\" value=\"40\"/>"
       "<film type=\"hdrfilm\"><integer name=\"width\" value=\"8\"/><integer name=\"height\" value=\"8\"/>"
@@ -320,8 +321,8 @@ TEST_CASE("unsupported XML constructs are errors naming the plugin and the line"
       {sensor + shape + "<emitter type=\"envmap\"/>\n", "line 4: <emitter type=\"envmap\">: envmap needs a filename"},
       {sensor + shape +
            "<emitter type=\"envmap\"><string name=\"filename\" value=\"sky.exr\"/><transform name=\"to_world\">"
-           "<rotate y=\"1\" angle=\"90\"/></transform></emitter>\n",
-       "envmap to_world must be the identity"},
+           "<scale value=\"2\"/></transform></emitter>\n",
+       "line 4: <emitter type=\"envmap\"> (scene key 'transform'): must be a rotation"},
       {sensor + shape + "<integrator type=\"direct\"/>\n",
        "line 4: <integrator type=\"direct\">: unsupported integrator"},
       {sensor + "<shape type=\"obj\"><string name=\"filename\" value=\"quad.obj\"/>"
@@ -415,7 +416,8 @@ TEST_CASE("Mitsuba bitmap wrap modes", "[xml]") {
 
 // An envmap emitter is the environment in Mitsuba's convention (bilinear lookup, u = 0 at −z;
 // the lookup itself is tested against Mitsuba's formula in kernels_envmap): scale, identity
-// to_world, float files as stored and 8-bit files sRGB-decoded, and the scene renders.
+// to_world, float files as stored and 8-bit files sRGB-decoded, and the scene renders; a rotating
+// to_world orients the map (its translation dropped, as Mitsuba applies to_world to directions).
 TEST_CASE("Mitsuba envmap emitters", "[xml]") {
   const std::string dir = test::temp_dir("xml-envmap");
   write(dir, "quad.obj", "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3 4\n");
@@ -453,7 +455,24 @@ TEST_CASE("Mitsuba envmap emitters", "[xml]") {
     double sum = 0;
     for (float v : img.data) sum += v;
     CHECK(sum > 0);
+    CHECK(!env.rotated);
   }
+  const std::string path =
+      write(dir, "env_rotated.xml",
+            head +
+                "<emitter type=\"envmap\"><string name=\"filename\" value=\"sky.exr\"/><transform name=\"to_world\">"
+                "<rotate x=\"1\" angle=\"-90\"/><rotate y=\"1\" angle=\"30\"/><translate value=\"5, 0, 0\"/>"
+                "</transform></emitter></scene>\n");
+  auto scene = load_scene(path);
+  const Environment& env = scene->environment;
+  REQUIRE(env.rotated);
+  const Transform want = Transform::rotate({0, 1, 0}, 30.f) * Transform::rotate({1, 0, 0}, -90.f);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) CHECK(env.rotation[i][j] == Approx(want.m[i][j]).margin(1e-6));
+  const Image img = render(*scene, {0, 4, 2, false});
+  double sum = 0;
+  for (float v : img.data) sum += v;
+  CHECK(sum > 0);
 }
 
 namespace {
