@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -51,12 +52,16 @@ namespace fs = std::filesystem;
 
 namespace {
 
-volatile std::sig_atomic_t interrupted = 0;
+// Atomic, not volatile sig_atomic_t: the handler may run on any thread (a TBB worker) while the
+// main thread reads the flag, which sig_atomic_t does not make a race-free exchange (helper-37's
+// TSan audit); a lock-free atomic is as safe inside the handler.
+std::atomic<int> interrupted{0};
+static_assert(std::atomic<int>::is_always_lock_free);
 // The first Ctrl-C asks for a checkpoint after the current view; a second one ends the process
 // at once (outputs are written atomically, so nothing is left truncated: the last checkpoint
 // stays usable).
 void on_sigint(int) {
-  interrupted = 1;
+  interrupted.store(1, std::memory_order_relaxed);
   std::signal(SIGINT, SIG_DFL);
   static const char note[] = "\noptimize: stopping after the current view (Ctrl-C again to quit at once)\n";
   [[maybe_unused]] const auto written = write(STDERR_FILENO, note, sizeof note - 1);
@@ -1031,7 +1036,7 @@ class Job {
         // Ctrl-C: all ranks stop at the same view when each gets SIGINT. (Under mpirun a Ctrl-C
         // becomes SIGTERM then SIGKILL for the ranks: they end without this checkpoint, and
         // --resume starts from the last periodic one.)
-        if ((stop = dist::any(interrupted != 0))) break;
+        if ((stop = dist::any(interrupted.load(std::memory_order_relaxed) != 0))) break;
         const int v = order[size_t(k)];
         const int factor = downsample_at(it);
         const int camera = factor == 1 ? cameras_[size_t(v)] : scaled_views_.at(factor).cameras[size_t(v)];
