@@ -39,6 +39,21 @@ Param structured_map(bool black_lower_half) {
   return p;
 }
 
+// A constant environment's radiance parameter.
+Param constant_radiance() {
+  Param p;
+  p.name = "environment.radiance";
+  p.shape = {3};
+  p.value = {0.5f, 1.f, 2.f};
+  return p;
+}
+
+// A direction uniform on the sphere.
+Vec3f random_direction(TestRng& rng) {
+  const double z = rng.uniform(-1, 1), phi = rng.uniform(0, 2 * M_PI), r = std::sqrt(1 - z * z);
+  return Vec3f(float(r * std::cos(phi)), float(z), float(r * std::sin(phi)));
+}
+
 Environment make_environment(ParamStore& store, Param radiance, bool is_map, float scale, bool bilinear = false) {
   Environment env;
   env.present = true;
@@ -82,10 +97,7 @@ std::vector<Vec3f> lookup_directions(TestRng& rng) {
   dirs.push_back(Environment::uv_to_direction({5.f / kWidth, 3.f / kHeight}));
   dirs.push_back(Environment::uv_to_direction({0.9999f, 0.5f}));
   dirs.push_back(Environment::uv_to_direction({20.5f / kWidth, 5.5f / kHeight}));
-  for (int i = 0; i < 20; ++i) {
-    const double z = rng.uniform(-1, 1), phi = rng.uniform(0, 2 * M_PI), r = std::sqrt(1 - z * z);
-    dirs.push_back(Vec3f(float(r * std::cos(phi)), float(z), float(r * std::sin(phi))));
-  }
+  for (int i = 0; i < 20; ++i) dirs.push_back(random_direction(rng));
   return dirs;
 }
 
@@ -131,11 +143,7 @@ TEST_CASE("environment map sampler matches its pdf (chi-square)", "[emitter][env
 
 TEST_CASE("constant environment sampler matches its pdf (chi-square)", "[emitter][envmap][chi2]") {
   ParamStore store;
-  Param radiance;
-  radiance.name = "environment.radiance";
-  radiance.shape = {3};
-  radiance.value = {0.5f, 1.f, 2.f};
-  const Environment env = make_environment(store, radiance, false, 1.f);
+  const Environment env = make_environment(store, constant_radiance(), false, 1.f);
   const Chi2Result r = chi2_environment(env, "constant environment", 8);
   INFO(r.report);
   CHECK(r.passed(1e-3));
@@ -221,10 +229,7 @@ TEST_CASE("the bilinear mode is Mitsuba 3's envmap lookup", "[emitter][envmap]")
   };
   TestRng rng(77);
   std::vector<Vec3f> dirs = lookup_directions(rng);
-  for (int i = 0; i < 200; ++i) {
-    const double z = rng.uniform(-1, 1), phi = rng.uniform(0, 2 * M_PI), r = std::sqrt(1 - z * z);
-    dirs.push_back(Vec3f(float(r * std::cos(phi)), float(z), float(r * std::sin(phi))));
-  }
+  for (int i = 0; i < 200; ++i) dirs.push_back(random_direction(rng));
   for (const Vec3f& d : dirs) {
     const Spectrum<double> ours = env.eval<double>(store, d);
     const Vec3d ref = mitsuba(d);
@@ -310,11 +315,7 @@ TEST_CASE("the bilinear map's direction gradient matches finite differences of e
   const Environment nearest = make_environment(other, structured_map(false), true, 1.5f, false);
   CHECK(length(nearest.direction_gradient(other, Vec3f(0.6f, 0.48f, 0.64f), Vec3d(1.0))) == 0.0);
   ParamStore third;
-  Param constant;
-  constant.name = "environment.radiance";
-  constant.shape = {3};
-  constant.value = {0.5f, 1.f, 2.f};
-  const Environment uniform = make_environment(third, constant, false, 1.f);
+  const Environment uniform = make_environment(third, constant_radiance(), false, 1.f);
   CHECK(length(uniform.direction_gradient(third, Vec3f(0.6f, 0.48f, 0.64f), Vec3d(1.0))) == 0.0);
 }
 
@@ -330,8 +331,7 @@ TEST_CASE("a rotated environment map reads R^T d and samples R d", "[emitter][en
     const Transform r = Transform::rotate({0.3f, 1.f, -0.4f}, 70.f);
     TestRng rng(101);
     for (int i = 0; i < 500; ++i) {
-      const double z = rng.uniform(-1, 1), phi = rng.uniform(0, 2 * M_PI), s = std::sqrt(1 - z * z);
-      const Vec3f d(float(s * std::cos(phi)), float(z), float(s * std::sin(phi)));
+      const Vec3f d = random_direction(rng);
       const Vec3f rd = r.vector(d);
       const Spectrum<double> want = plain.eval<double>(a, d), got = turned.eval<double>(b, rd);
       INFO("direction (" << d.x << ", " << d.y << ", " << d.z << ")");
