@@ -7,7 +7,8 @@
 // its weight — off by 2.6e-2 rms (11% at worst) for the triangles of a 10⁶-triangle emitter, by
 // 1.7e-2 rms over the columns of a 65536-wide sky with a sun, where 2508 columns of positive
 // weight were never drawn — while the pdf of every sample assumed the weights: a biased estimate.
-// In double a bin of probability p is drawn with probability p(1 ± 2⁻⁵³/p).
+// In double a bin of probability p is drawn with probability p ± 4·2⁻⁵³ (a few roundings of the
+// running sums; test_sampler checks every bin).
 #include <cstddef>
 #include <vector>
 
