@@ -9,6 +9,7 @@
 #include <cmath>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -336,6 +337,51 @@ void check_eps_range(const Param& p, double eps) {
   s << "--eps " << eps << " is not smaller than the width of the valid range [" << p.lower << ", " << p.upper
     << "] of '" << p.name << "'";
   throw InputError(s.str());
+}
+
+namespace {
+// The regularized incomplete beta function I_x(a, b) by its continued fraction (modified Lentz),
+// on the side of x where it converges fast.
+double incomplete_beta(double a, double b, double x) {
+  if (x <= 0.0) return 0.0;
+  if (x >= 1.0) return 1.0;
+  if (x > (a + 1.0) / (a + b + 2.0)) return 1.0 - incomplete_beta(b, a, 1.0 - x);
+  const double front =
+      std::exp(std::lgamma(a + b) - std::lgamma(a) - std::lgamma(b) + a * std::log(x) + b * std::log1p(-x)) / a;
+  const double tiny = 1e-300;
+  double f = 1.0, c = 1.0, d = 0.0;
+  for (int i = 0; i <= 1000; ++i) {
+    const double m = double(i / 2);
+    double term = 1.0;  // i = 0
+    if (i > 0 && i % 2 == 0) term = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m));
+    if (i % 2 == 1) term = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1));
+    d = 1.0 + term * d;
+    d = 1.0 / (std::abs(d) < tiny ? tiny : d);
+    c = 1.0 + term / c;
+    if (std::abs(c) < tiny) c = tiny;
+    f *= c * d;
+    if (std::abs(1.0 - c * d) < 1e-15) break;
+  }
+  return front * (f - 1.0);
+}
+}  // namespace
+
+double student_t_two_sided_tail(double t, double dof) {
+  if (!(dof > 0)) return std::numeric_limits<double>::quiet_NaN();
+  return incomplete_beta(dof / 2.0, 0.5, dof / (dof + t * t));
+}
+
+double check_z_threshold(int seeds) {
+  const double p = std::erfc(4.0 / std::sqrt(2.0));  // a normal's two-sided tail beyond 4σ
+  if (seeds < 2) return 4.0;
+  if (seeds > 100000) return 4.0;
+  const double dof = double(seeds - 1);
+  double lo = 4.0, hi = 1e7;  // t's quantile lies above the normal's
+  for (int i = 0; i < 200; ++i) {
+    const double mid = std::sqrt(lo * hi);
+    (student_t_two_sided_tail(mid, dof) > p ? lo : hi) = mid;
+  }
+  return std::sqrt(lo * hi);
 }
 
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,

@@ -74,6 +74,15 @@ struct CheckRow {
   double difference_stderr = 0;  // of the paired differences' mean
 };
 
+// The |z| a check over `seeds` seeds accepts: the two-sided 4σ tail of a normal (p = 6.3e-5) under
+// Student's t with seeds − 1 degrees of freedom, since z divides by an estimated standard error
+// (the normal's 4 let a correct gradient fail 15.5% of 2-seed checks, 2.9% of 4-seed ones).
+// 10050 at 2 seeds (a check that cannot fail: its resolution says so), 32.6 at 4, 8.47 at 8, 5.48
+// at 16, 4.29 at 64, → 4.
+double check_z_threshold(int seeds);
+// P(|T| ≥ t) for Student's t with dof degrees of freedom.
+double student_t_two_sided_tail(double t, double dof);
+
 // For `directions` random directions v with i.i.d. standard-normal elements (seeded,
 // reproducible), steps ±eps·v,
 // compares the adjoint with central differences at the same seed. Sampling distributions that

@@ -370,3 +370,15 @@ def test_ctrl_c_interrupts_a_pass(scene, which):
     assert scene.cameras[0] == tuple(int(v) for v in backlight.load(CORNELL).cameras[0])
     image = backlight.render(scene, spp=1, seed=1, resolution=RES)
     np.testing.assert_array_equal(image, backlight.render(backlight.load(CORNELL), spp=1, seed=1, resolution=RES))
+
+
+def test_check_over_seeds_uses_students_t_and_reports_resolution(scene):
+    # Two seeds accept |z| up to Student's t quantile of the 4-sigma tail for one degree of freedom
+    # (10050, a Cauchy quantile): each row says so and how coarse it is; one seed has neither.
+    d_image = np.ones((RES[1], RES[0], 3), np.float32)
+    rows = backlight.check(scene, "light.radiance", d_image=d_image, seeds=2, directions=1, spp=1, resolution=RES)
+    expected = 1 / math.tan(math.pi * math.erfc(4 / math.sqrt(2)) / 2)
+    assert abs(rows[0]["z_threshold"] - expected) < 1e-6 * expected, rows
+    assert rows[0]["resolution"] >= 0
+    single = backlight.check(scene, "light.radiance", d_image=d_image, directions=1, spp=1, resolution=RES)
+    assert math.isnan(single[0]["z_threshold"]) and math.isnan(single[0]["resolution"])

@@ -1025,6 +1025,19 @@ check_nothing_compared() {
     fail "check of a camera that is not rendered printed: $(cat out.nothing)"
 }
 in_background check_nothing_compared
+# check --seeds: a pass that could not have seen a 25% error is INCONCLUSIVE, exit 1 (helper-39: a
+# sign error passed 16 seeds; two seeds accept |z| up to 10050, Student's t of the 4σ tail).
+check_inconclusive() {
+  local rc=0
+  "$bin" check "$small" --spp 1 --rr-depth 0 --adjoint-image t16.exr --param metal.roughness --seeds 2 \
+    --directions 1 >out.inconclusive 2>err.inconclusive || rc=$?
+  [ "$rc" -eq 1 ] || fail "check --seeds 2: exit $rc, expected 1: $(cat out.inconclusive)"
+  grep -q "^INCONCLUSIVE: 1 direction(s), 2 seeds, |z| < 1.01e+04" out.inconclusive ||
+    fail "check --seeds 2 printed: $(cat out.inconclusive)"
+  grep -q "note: 'metal.roughness' moves sampling" err.inconclusive ||
+    fail "check of a roughness: no note on sampling: $(cat err.inconclusive)"
+}
+in_background check_inconclusive
 # grad --out: an earlier run's gradient files that this run does not write, and temporaries of
 # killed runs (pid no longer running), are removed; other files and live temporaries stay.
 grad_cleans_its_folder() {

@@ -701,3 +701,39 @@ TEST_CASE("replays stop after a path's last vertex that can produce a derivative
       if (c.material) CHECK(double(pruned.rays) < 0.9 * double(whole.rays));
     }
 }
+
+// check --seeds N accepts |z| below Student's t quantile of the normal's two-sided 4σ tail for
+// N − 1 degrees of freedom: the tail function against a quadrature of the t density written out
+// here, and the thresholds' tails against the 4σ normal tail.
+TEST_CASE("check's z threshold: Student's t quantile of the 4-sigma tail", "[gradient][check]") {
+  auto quadrature_tail = [](double t, double dof) {
+    // 2 ∫_t^∞ f(x) dx with x = t / s, s in (0, 1]: dx = t / s² ds; Simpson on 20000 intervals.
+    const double norm = std::exp(std::lgamma((dof + 1) / 2) - std::lgamma(dof / 2)) / std::sqrt(dof * M_PI);
+    auto g = [&](double s) {
+      if (s <= 0) return 0.0;
+      const double x = t / s;
+      return norm * std::pow(1 + x * x / dof, -(dof + 1) / 2) * t / (s * s);
+    };
+    const int n = 20000;
+    double sum = g(0) + g(1);
+    for (int i = 1; i < n; ++i) sum += g(double(i) / n) * (i % 2 ? 4 : 2);
+    return 2 * sum / (3.0 * n);
+  };
+  for (double t : {0.5, 2.0, 4.0, 9.0})  // one degree of freedom: Cauchy, 1 − (2/π) atan t
+    CHECK(student_t_two_sided_tail(t, 1.0) == Approx(1 - 2 / M_PI * std::atan(t)).epsilon(1e-9));
+  for (double dof : {2.0, 3.0, 7.0, 15.0, 63.0})
+    for (double t : {0.5, 2.0, 4.0, 9.0}) {
+      INFO("dof " << dof << ", t " << t);
+      CHECK(student_t_two_sided_tail(t, dof) == Approx(quadrature_tail(t, dof)).epsilon(1e-6));
+    }
+  const double normal_tail = std::erfc(4 / std::sqrt(2.0));
+  for (int seeds : {2, 3, 4, 8, 16, 64, 1000}) {
+    const double t = check_z_threshold(seeds);
+    INFO("seeds " << seeds << ": threshold " << t);
+    CHECK(student_t_two_sided_tail(t, seeds - 1) == Approx(normal_tail).epsilon(1e-6));
+    CHECK(t > 4);
+  }
+  CHECK(check_z_threshold(2) == Approx(1 / std::tan(M_PI * normal_tail / 2)).epsilon(1e-6));  // Cauchy: 10050
+  CHECK(check_z_threshold(1000) == Approx(4.0).epsilon(0.01));
+  CHECK(check_z_threshold(1) == 4.0);
+}
