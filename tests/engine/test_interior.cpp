@@ -54,6 +54,21 @@ std::array<double, N> random_point(std::mt19937& rng, const std::array<double, N
   return x;
 }
 
+// A log-factor of a vertex seen from either side of a two-sided surface: 4 points around
+// `centre` with components [flip, flip + 3) (the side's normal) negated for sign −1, each checked
+// against central differences; f(v, sign) is the factor.
+template <int N, class F>
+void check_both_sides(std::mt19937& rng, const std::array<double, N>& centre, int flip, double spread, const F& f,
+                      const char* name) {
+  for (double sign : {1.0, -1.0})
+    for (int trial = 0; trial < 4; ++trial) {
+      std::array<double, N> c = centre;
+      for (int k = flip; k < flip + 3; ++k) c[size_t(k)] *= sign;
+      const std::array<double, N> x = random_point<N>(rng, c, spread);
+      check_gradient<N>([&](const std::array<Dual<double, N>, N>& v) { return f(v, sign); }, x, 1e-6, 1e-6, name);
+    }
+}
+
 }  // namespace
 
 TEST_CASE("moving_hit: the hit point and shading normal of a fixed ray on a moving triangle", "[interior]") {
@@ -103,36 +118,24 @@ TEST_CASE("log-factors of continuations, light samples and MIS weights", "[inter
   const std::array<double, 16> light_centre = {0.1,  0,   -0.1, 0,    1, 0.1, -0.5, 1.5,
                                                -0.4, 0.5, 1.6,  -0.5, 0, 1.4, 0.6,  std::log(0.8)};
   // sign −1: the back of a two-sided surface, its shading normal m pointing away from the light.
-  for (double sign : {1.0, -1.0})
-    for (int trial = 0; trial < 4; ++trial) {
-      std::array<double, 16> centre = light_centre;
-      for (int k = 3; k < 6; ++k) centre[size_t(k)] *= sign;
-      const std::array<double, 16> x = random_point<16>(rng, centre, 0.1);
-      using D = Dual<double, 16>;
-      check_gradient<16>(
-          [&](const std::array<D, 16>& v) {
-            const Vec3<D> q[3] = {vec(v, 6), vec(v, 9), vec(v, 12)};
-            return log_light_sample(vec(v, 0), vec(v, 3), sign, q, 0.3, 0.25, v[15], 0.5);
-          },
-          x, 1e-6, 1e-6, "log_light_sample");
-    }
+  check_both_sides<16>(
+      rng, light_centre, 3, 0.1,
+      [](const std::array<Dual<double, 16>, 16>& v, double sign) {
+        const Vec3<Dual<double, 16>> q[3] = {vec(v, 6), vec(v, 9), vec(v, 12)};
+        return log_light_sample(vec(v, 0), vec(v, 3), sign, q, 0.3, 0.25, v[15], 0.5);
+      },
+      "log_light_sample");
   // The previous vertex's normal, the ray's origin, the emitter hit x and its triangle, log area.
   const Vec3d dir = normalize(Vec3d(0.05, 1, 0.02));
   const std::array<double, 19> hit_centre = {0,   1,    0.1, 0,   0,    0, 0.05, 1.5, 0.03,         -0.5,
                                              1.5, -0.4, 0.5, 1.6, -0.5, 0, 1.4,  0.6, std::log(0.8)};
-  for (double sign : {1.0, -1.0})
-    for (int trial = 0; trial < 4; ++trial) {
-      std::array<double, 19> centre = hit_centre;
-      for (int k = 0; k < 3; ++k) centre[size_t(k)] *= sign;
-      const std::array<double, 19> x = random_point<19>(rng, centre, 0.05);
-      using D = Dual<double, 19>;
-      check_gradient<19>(
-          [&](const std::array<D, 19>& v) {
-            const Vec3<D> p[3] = {vec(v, 9), vec(v, 12), vec(v, 15)};
-            return log_emitter_hit_weight(vec(v, 0), sign, dir, vec(v, 3), vec(v, 6), p, v[18], 0.5);
-          },
-          x, 1e-6, 1e-6, "log_emitter_hit_weight");
-    }
+  check_both_sides<19>(
+      rng, hit_centre, 0, 0.05,
+      [&](const std::array<Dual<double, 19>, 19>& v, double sign) {
+        const Vec3<Dual<double, 19>> p[3] = {vec(v, 9), vec(v, 12), vec(v, 15)};
+        return log_emitter_hit_weight(vec(v, 0), sign, dir, vec(v, 3), vec(v, 6), p, v[18], 0.5);
+      },
+      "log_emitter_hit_weight");
 }
 
 TEST_CASE("the power heuristic's derivative: the two strategies' weights sum to one", "[interior]") {
