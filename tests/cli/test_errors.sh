@@ -510,6 +510,16 @@ scene_variant "$pose" "$tmp/pose_envmap_bilinear.json" \
   "s['environment'] = {'type': 'envmap', 'file': '$repo/scenes/smoke/sky.pfm', 'convention': 'mitsuba'}"
 expect_ok grad_geometry_env_rotate_bilinear grad "$tmp/pose_envmap_bilinear.json" --adjoint-image "$pose_ones" \
   --param front.rotate --spp 1 --out g_envrot_bilinear -q
+# An environment's "transform" must be a rotation: the rest is refused by name.
+for bad in "translate|{'translate': [1, 0, 0]}|a translation would do nothing" \
+           "mirror|{'scale': [-1, 1, 1]}|must be a rotation" "scale|{'scale': 2}|must be a rotation" \
+           "shear|{'matrix': [[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}|must be a rotation"; do
+  IFS='|' read -r name transform message <<<"$bad"
+  scene_variant "$pose" "$tmp/pose_env_$name.json" \
+    "s['environment'] = {'type': 'envmap', 'file': '$repo/scenes/smoke/sky.pfm', 'transform': $transform}"
+  expect_error "env_transform_$name" "pose_env_$name.json" "/environment/transform" "$message" -- \
+    render "$tmp/pose_env_$name.json" -o o.exr --spp 1
+done
 expect_error set_syntax "--set" "white.albedo" -- render "$small" -o o.exr --set white.albedo
 expect_error set_corrupt_image "random.png" "unsupported image format" -- \
   render "$small" -o o.exr --set wall.albedo=small/random.png
