@@ -570,24 +570,24 @@ py::list check_py(PyScene& s, const std::string& param, const py::object& target
     rows = directional_check(*s.scene, param, rq, directions, eps, direction_seed, seeds);
   });
   py::list out;
-  const double threshold = check_z_threshold(seeds);
-  for (const CheckRow& r : rows) {
-    // The CLI's verdict: within the tolerance, or (over several seeds) |z| below Student's t
-    // quantile of the 4σ tail (check_z_threshold).
-    const bool ok = r.relative_error <= tolerance || (seeds > 1 && std::abs(r.z) < threshold);
+  // The CLI's verdict (summarize_check): within the tolerance of the directions' RMS, or (over
+  // several seeds) |z| below Student's t quantile of the 4σ tail.
+  const CheckSummary verdict = summarize_check(rows, seeds, tolerance);
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const CheckRow& r = rows[i];
     py::dict d;
     d["adjoint"] = r.adjoint;
     d["finite_difference"] = r.finite_difference;
     d["relative_error"] = r.relative_error;
+    d["rms_relative_error"] = r.rms_relative_error;
     d["adjoint_stderr"] = r.adjoint_stderr;
     d["fd_stderr"] = r.fd_stderr;
     d["z"] = r.z;
-    d["ok"] = ok;
-    // Over several seeds: the |z| accepted, and the smallest relative error of the adjoint this row
-    // would catch (the CLI calls a pass with any row above 0.25 INCONCLUSIVE).
-    d["z_threshold"] = seeds > 1 ? threshold : std::numeric_limits<double>::quiet_NaN();
-    d["resolution"] = seeds > 1 ? threshold * r.difference_stderr / std::max(std::abs(r.finite_difference), 1e-30)
-                                : std::numeric_limits<double>::quiet_NaN();
+    d["ok"] = bool(verdict.ok[i]);
+    // Over several seeds: the |z| accepted, and the smallest factor error 1 + r of the adjoint this
+    // row would catch (the CLI calls a pass that no row resolves to 25% INCONCLUSIVE).
+    d["z_threshold"] = seeds > 1 ? verdict.threshold : std::numeric_limits<double>::quiet_NaN();
+    d["resolution"] = verdict.resolution[i];
     out.append(d);
   }
   return out;
@@ -726,7 +726,9 @@ PYBIND11_MODULE(_backlight, m) {
       "(loss(theta + eps v) - loss(theta - eps v)) / 2 eps of renders at the same seed; the loss against target "
       "(loss=l2, l1 or rel_l2), or sum(d_image * I) with d_image. seeds > 1 averages both over seeds seed, seed+1, "
       "... (for parameters sampling depends on, and geometry). Returns one dict per direction: adjoint, "
-      "finite_difference, relative_error, adjoint_stderr, fd_stderr, z (NaN for one seed) and ok (relative_error "
-      "<= tolerance, or over several seeds |z| < z_threshold, Student's t quantile of the 4-sigma tail). The "
-      "parameter's values are restored afterwards.");
+      "finite_difference, relative_error (|adjoint - finite_difference| / |finite_difference|), rms_relative_error "
+      "(the same over the RMS of finite_difference over all directions), adjoint_stderr, fd_stderr, z (NaN for one "
+      "seed), ok (rms_relative_error <= tolerance, or over several seeds |z| < z_threshold, Student's t quantile of "
+      "the 4-sigma tail) and resolution (over several seeds: the smallest |r| of an adjoint off by a factor 1 + r "
+      "that the row fails). The parameter's values are restored afterwards.");
 }

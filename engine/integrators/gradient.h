@@ -67,7 +67,12 @@ void check_gradients_finite(const ParamStore& params);
 struct CheckRow {
   double adjoint = 0;            // ⟨∇loss, v⟩ from the adjoint pass (mean over the seeds)
   double finite_difference = 0;  // (loss(θ+εv) − loss(θ−εv)) / 2ε, primal renders at the same seed (mean)
-  double relative_error = 0;     // of the means
+  double relative_error = 0;     // |adjoint − finite difference| / |finite difference|, of the means
+  // |adjoint − finite difference| / the RMS over all directions of the finite differences (means):
+  // the verdict's error (summarize_check). A direction whose derivative is tiny (v nearly
+  // orthogonal to the gradient) has a large relative_error from the finite difference's own
+  // truncation and rounding; against the typical directional derivative it does not.
+  double rms_relative_error = 0;
   // Over several seeds: the standard errors of the two means, and the z score of their paired
   // differences (adjoint − finite difference at each seed); NaN for one seed.
   double adjoint_stderr = 0, fd_stderr = 0, z = std::numeric_limits<double>::quiet_NaN();
@@ -82,6 +87,22 @@ struct CheckRow {
 double check_z_threshold(int seeds);
 // P(|T| ≥ t) for Student's t with dof degrees of freedom.
 double student_t_two_sided_tail(double t, double dof);
+
+// The verdict on a check's rows (the CLI's and Python's). A row passes when its rms_relative_error
+// is within `tolerance`, or, over several seeds, when |z| < check_z_threshold(seeds). An adjoint
+// off by a factor 1 + r fails row d once |r|·|fd_d| exceeds both threshold·(standard error of the
+// paired differences) and tolerance·RMS: `resolution[d]` is that smallest |r| (NaN for one seed),
+// `resolution_overall` the smallest over the rows (any failing row fails the check), and the
+// check is inconclusive when it passed but could not have caught r = 25%. The direction with the
+// largest |fd_d| (≥ the RMS) always sees a factor error beyond `tolerance`.
+struct CheckSummary {
+  double threshold = 4;  // the |z| accepted
+  std::vector<bool> ok;
+  std::vector<double> resolution;
+  double resolution_overall = std::numeric_limits<double>::quiet_NaN();
+  bool passed = true, inconclusive = false;
+};
+CheckSummary summarize_check(const std::vector<CheckRow>& rows, int seeds, double tolerance);
 
 // For `directions` random directions v with i.i.d. standard-normal elements (seeded,
 // reproducible), steps ±eps·v,

@@ -382,3 +382,10 @@ def test_check_over_seeds_uses_students_t_and_reports_resolution(scene):
     assert rows[0]["resolution"] >= 0
     single = backlight.check(scene, "light.radiance", d_image=d_image, directions=1, spp=1, resolution=RES)
     assert math.isnan(single[0]["z_threshold"]) and math.isnan(single[0]["resolution"])
+    # Errors against the RMS of the finite differences over the directions: with one direction,
+    # the relative error itself; with three, the rows' errors over that RMS.
+    assert single[0]["rms_relative_error"] == single[0]["relative_error"], single
+    three = backlight.check(scene, "light.radiance", d_image=d_image, directions=3, spp=1, resolution=RES)
+    rms = math.sqrt(sum(r["finite_difference"] ** 2 for r in three) / 3)
+    for r in three:
+        assert math.isclose(r["rms_relative_error"], abs(r["adjoint"] - r["finite_difference"]) / rms), three

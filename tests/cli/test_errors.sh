@@ -1086,8 +1086,9 @@ in_background render_cleans_temporaries
 # check: a table, exit 0.
 good_check() {
   expect_ok check check "$cornell" --rr-depth 0 --resolution 16x16 --spp 2 --param light.radiance --target t16.exr || return
-  grep -qE '^dir +adjoint +finite_diff +rel_error' out.check || fail "check: no table header: $(cat out.check)"
-  [ "$(grep -cE '^[0-9]+ +-?[0-9.]+e[-+][0-9]+ +-?[0-9.]+e[-+][0-9]+ +[0-9.]+e[-+][0-9]+$' out.check)" -eq 4 ] ||
+  grep -qE '^dir +adjoint +finite_diff +rel_error +error/rms$' out.check || fail "check: no table header: $(cat out.check)"
+  # Columns: adjoint, finite difference, relative error, error against the RMS over the directions.
+  [ "$(grep -cE '^[0-9]+ +-?[0-9.]+e[-+][0-9]+ +-?[0-9.]+e[-+][0-9]+ +[0-9.]+e[-+][0-9]+ +[0-9.]+e[-+][0-9]+$' out.check)" -eq 4 ] ||
     fail "check: expected 4 table rows: $(cat out.check)"
   grep -q '^ok: 4 direction' out.check || fail "check: no ok line: $(cat out.check)"
   # One progress bar over the check's passes (1 gradient + 2 renders per direction), ending with
