@@ -721,7 +721,8 @@ PYBIND11_MODULE(_backlight, m) {
       py::arg("eps") = 1e-2, py::arg("tolerance") = 1e-2, py::arg("direction_seed") = 1, py::arg("seeds") = 1,
       py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(),
       py::arg("camera") = 0, py::arg("resolution") = py::none(),
-      "The CLI's `backlight check`: for `directions` random directions v (i.i.d. standard normal, seeded by "
+      "The CLI's `backlight check`: for `directions` random directions v (i.i.d. standard normal, one per welded "
+      "position for vertex positions, seeded by "
       "direction_seed), the adjoint's directional derivative <grad, v> against the central finite difference "
       "(loss(theta + eps v) - loss(theta - eps v)) / 2 eps of renders at the same seed; the loss against target "
       "(loss=l2, l1 or rel_l2), or sum(d_image * I) with d_image. seeds > 1 averages both over seeds seed, seed+1, "

@@ -223,8 +223,10 @@ struct CheckFlags {
         app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
     app->add_option("--param", param, "Parameter to check")->required();
     app->add_option("--directions", directions, "Number of random directions (default 4)");
-    app->add_option("--eps", eps,
-                    "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (default 1e-2)");
+    app->add_option(
+        "--eps", eps,
+        "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (vertex positions: one "
+        "per welded position) (default 1e-2)");
     app->add_option("--tolerance", tolerance,
                     "Largest accepted |adjoint - finite difference|, relative to the RMS of the finite differences "
                     "over the directions; exit 1 above it (default 1e-2)");

@@ -105,18 +105,22 @@ struct CheckSummary {
 CheckSummary summarize_check(const std::vector<CheckRow>& rows, int seeds, double tolerance);
 
 // For `directions` random directions v with i.i.d. standard-normal elements (seeded,
-// reproducible), steps ±eps·v,
-// compares the adjoint with central differences at the same seed. Sampling distributions that
-// depend on appearance parameters (environment importance sampling, medium majorants) are held
-// fixed, so both sides differentiate the same estimator; a geometry parameter re-poses the scene
-// for each render (the BVH and emitter tables follow the meshes). Steps are clamped into the
-// parameter's valid range (the adjoint side uses the steps taken); an eps not smaller than the
-// range's width is refused (InputError). With `seeds` > 1 both sides are averaged
-// over the render seeds seed, seed + 1, … (the adjoint seed likewise): where sampling depends on
-// the parameter (roughness, moving silhouettes) same-seed differences jump, and the check is on
-// the expectation (CheckRow::z).
+// reproducible; for a vertex positions buffer one draw per welded position, so a mesh's split
+// copies of a vertex move together and it stays closed), steps ±eps·v, compares the adjoint with
+// central differences at the same seed. Sampling distributions that depend on appearance
+// parameters (environment importance sampling, medium majorants) are held fixed, so both sides
+// differentiate the same estimator; a geometry parameter re-poses the scene for each render (the
+// BVH and emitter tables follow the meshes). Steps are clamped into the parameter's valid range
+// (the adjoint side uses the steps taken); an eps not smaller than the range's width is refused
+// (InputError). With `seeds` > 1 both sides are averaged over the render seeds seed, seed + 1, …
+// (the adjoint seed likewise): where sampling depends on the parameter (roughness, moving
+// silhouettes) same-seed differences jump, and the check is on the expectation (CheckRow::z).
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
                                         int directions, double eps, uint64_t direction_seed, int seeds = 1);
+// For a mesh's vertex positions parameter (handle), per vertex the first vertex at bitwise the same
+// position (−0 as +0, as edges are welded): directional_check moves such copies together. Empty
+// for any other parameter.
+std::vector<uint32_t> positions_welding(const Scene& scene, int handle);
 // The check's refusal of an eps not smaller than the width of parameter `p`'s valid range, for
 // callers that validate before they print (directional_check makes it too).
 void check_eps_range(const Param& p, double eps);
