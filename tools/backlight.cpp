@@ -233,12 +233,13 @@ struct CheckFlags {
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->check(kSeed);
-    app->add_option("--seeds", seeds,
-                    "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
-                    "differences below Student's t quantile of the normal's 4-sigma tail for N - 1 degrees of "
-                    "freedom (or the means within --tolerance); INCONCLUSIVE, exit 1, when no direction could "
-                    "have seen the adjoint off by a factor 1.25. For parameters sampling depends on (roughness, "
-                    "metallic, media density, scale and g) and for geometry (default 1: same-seed comparison)");
+    app->add_option(
+        "--seeds", seeds,
+        "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
+        "differences below Student's t quantile of the normal's 4-sigma tail for N - 1 degrees of "
+        "freedom (or the means within --tolerance); INCONCLUSIVE, exit 1, when some direction could "
+        "not have seen an error of 25% of the derivatives' RMS. For parameters sampling depends on (roughness, "
+        "metallic, media density, scale and g) and for geometry (default 1: same-seed comparison)");
   }
 };
 
@@ -395,9 +396,11 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
       : verdict.passed     ? "ok"
                            : "FAILED",
       rows.size(), c.seeds, verdict.threshold, c.seeds, c.tolerance);
-  std::printf("resolution: an adjoint off by a factor 1 + r would fail this check for |r| above %.2g%%%s\n",
-              100 * verdict.resolution_overall,
-              verdict.resolution_overall > 0.25 ? " (more --seeds or --spp to tighten it below 25%)" : "");
+  std::printf(
+      "resolution: every direction fails an error of the adjoint's derivative along it above %.2g%% of the RMS "
+      "(an adjoint off by a factor 1 + r fails for |r| above it)%s\n",
+      100 * verdict.resolution_overall,
+      verdict.resolution_overall > 0.25 ? " (more --seeds or --spp to tighten it below 25%)" : "");
   if (verdict.inconclusive) return 1;
   return verdict.passed ? 0 : 1;
 }
