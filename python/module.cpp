@@ -583,9 +583,11 @@ py::list check_py(PyScene& s, const std::string& param, const py::object& target
     d["adjoint_stderr"] = r.adjoint_stderr;
     d["fd_stderr"] = r.fd_stderr;
     d["z"] = r.z;
-    d["ok"] = bool(verdict.ok[i]);
-    // Over several seeds: the |z| accepted, and the smallest factor error 1 + r of the adjoint this
-    // row would catch (the CLI calls a pass that no row resolves to 25% INCONCLUSIVE).
+    d["ok"] = bool(verdict.ok[i]);  // false for every row when nothing was compared
+    d["nothing_compared"] = verdict.nothing_compared;
+    // Over several seeds: the |z| accepted, and the smallest error of the adjoint's derivative along
+    // this row's direction that the row would catch, over the RMS of the finite differences (the
+    // CLI calls a pass in which any row's is above 0.25 INCONCLUSIVE).
     d["z_threshold"] = seeds > 1 ? verdict.threshold : std::numeric_limits<double>::quiet_NaN();
     d["resolution"] = verdict.resolution[i];
     out.append(d);
@@ -730,6 +732,9 @@ PYBIND11_MODULE(_backlight, m) {
       "finite_difference, relative_error (|adjoint - finite_difference| / |finite_difference|), rms_relative_error "
       "(the same over the RMS of finite_difference over all directions), adjoint_stderr, fd_stderr, z (NaN for one "
       "seed), ok (rms_relative_error <= tolerance, or over several seeds |z| < z_threshold, Student's t quantile of "
-      "the 4-sigma tail) and resolution (over several seeds: the smallest |r| of an adjoint off by a factor 1 + r "
-      "that the row fails). The parameter's values are restored afterwards.");
+      "the 4-sigma tail; false in every row with nothing_compared, when neither side changes in any direction: the "
+      "parameter does not reach the image) and resolution (over several seeds: the smallest error of the adjoint's "
+      "derivative along "
+      "the row's direction that the row fails, over that RMS; above 0.25 in any row, the CLI calls a pass "
+      "INCONCLUSIVE). The parameter's values are restored afterwards.");
 }

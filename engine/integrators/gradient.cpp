@@ -566,6 +566,12 @@ CheckSummary summarize_check(const std::vector<CheckRow>& rows, int seeds, doubl
       s.resolution.push_back(std::numeric_limits<double>::quiet_NaN());
     }
   }
+  s.nothing_compared = std::all_of(rows.begin(), rows.end(),
+                                   [](const CheckRow& r) { return r.adjoint == 0.0 && r.finite_difference == 0.0; });
+  if (s.nothing_compared) {
+    s.passed = false;
+    s.ok.assign(rows.size(), false);
+  }
   if (seeds > 1 && !rows.empty()) {
     s.resolution_overall = worst;
     // A pass that could not have seen a 25% error is no pass (helper-39: a sign error passed 16

@@ -106,6 +106,10 @@ struct CheckSummary {
   std::vector<double> resolution;
   double resolution_overall = std::numeric_limits<double>::quiet_NaN();
   bool passed = true, inconclusive = false;
+  // Both sides exactly 0 in every direction: the parameter does not reach this image (a camera
+  // that is not rendered, a material no visible path meets, a density at exactly 0). That
+  // compares nothing: no row passes.
+  bool nothing_compared = false;
 };
 CheckSummary summarize_check(const std::vector<CheckRow>& rows, int seeds, double tolerance);
 

@@ -389,3 +389,17 @@ def test_check_over_seeds_uses_students_t_and_reports_resolution(scene):
     rms = math.sqrt(sum(r["finite_difference"] ** 2 for r in three) / 3)
     for r in three:
         assert math.isclose(r["rms_relative_error"], abs(r["adjoint"] - r["finite_difference"]) / rms), three
+
+
+def test_check_that_compares_nothing_passes_nothing():
+    # A parameter that does not reach the image (a camera that is not rendered): both sides are
+    # exactly 0 in every direction. Rows said ok = True (0 against 0); the CLI says "nothing
+    # compared" and exits 1.
+    pose = backlight.load(os.path.join(ROOT, "scenes", "pose", "scene.json"))
+    rows = backlight.check(pose, "left.origin", d_image=np.ones((16, 16, 3), np.float32), spp=1, resolution=(16, 16),
+                           directions=2)
+    assert all(r["nothing_compared"] and not r["ok"] for r in rows), rows
+    assert all(r["adjoint"] == 0 and r["finite_difference"] == 0 for r in rows), rows
+    rows = backlight.check(pose, "box.albedo", d_image=np.ones((16, 16, 3), np.float32), spp=1, resolution=(16, 16),
+                           directions=2)
+    assert all(not r["nothing_compared"] and r["ok"] for r in rows), rows

@@ -831,6 +831,15 @@ TEST_CASE("check's verdict: errors against the RMS of the directional derivative
   s = summarize_check(rows, 4, 0.01);
   CHECK(s.passed);
   CHECK(s.resolution_overall == Approx(0.01));  // the tolerance, where the noise is below it
+  // Nothing compared (both sides exactly 0 in every direction, a parameter that does not reach the
+  // image): no row passes.
+  rows = {seeded(0.0, 0.0, 0.0), seeded(0.0, 0.0, 0.0)};
+  s = summarize_check(rows, 1, 0.01);
+  CHECK(s.nothing_compared);
+  CHECK_FALSE(s.passed);
+  CHECK_FALSE(s.ok[0]);
+  rows[1].adjoint = 1e-30;
+  CHECK_FALSE(summarize_check(rows, 1, 0.01).nothing_compared);
   // Finite differences near the float range: the RMS does not overflow (an infinite RMS passed every
   // error).
   rows = {row(2e300, 1e300), row(1e300, 1e300)};
