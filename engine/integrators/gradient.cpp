@@ -413,42 +413,17 @@ double fd_rms(const std::vector<CheckRow>& rows) {
 }
 }  // namespace
 
-std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
-                                        int directions, double eps, uint64_t direction_seed, int seeds) {
-  int h = scene.params.find(name);
-  if (h < 0) throw InputError("unknown parameter '" + name + "' (see `backlight params`)");
-  if (seeds < 1) throw InputError("--seeds must be ≥ 1");
-  scene.params.require_grad({name});
-  const std::vector<float> theta = scene.params[h].value;
-
-  // Appearance parameters: the sampling tables are deliberately not rebuilt (see header). A
-  // geometry parameter moves meshes or a camera: they are re-posed (and the BVH and emitter
-  // tables rebuilt) for every render, or both renders would show the scene as it was.
-  const bool geometry = scene.params[h].geometry;
-  auto set_values = [&](const std::vector<float>& v) {
-    scene.params[h].value = v;
-    if (geometry) scene.prepare_sampling();
-  };
-  const float lower = scene.params[h].lower, upper = scene.params[h].upper;
-  // θ goes back however the check ends: an error, a pass cancelled (Ctrl-C in Python), bad_alloc.
-  struct Restore {
-    std::function<void()> restore;
-    ~Restore() {
-      try {
-        restore();
-      } catch (...) {  // nothing to report it to from a destructor; θ itself is valid
-      }
-    }
-  } restore_theta{[&] { set_values(theta); }};
-
-  // The directions and their steps first. Steps are clamped into the valid range (a black texel
-  // steps only upwards; the adjoint side predicts the change of the steps actually taken, below);
-  // an eps as wide as the range itself is a mistake (|g| > 1, albedos of 1e30).
-  check_eps_range(scene.params[h], eps);
+CheckSteps check_steps(const Scene& scene, int h, int directions, double eps, uint64_t direction_seed) {
+  const Param& param = scene.params[h];
+  const std::vector<float>& theta = param.value;
+  const std::string& name = param.name;
+  const float lower = param.lower, upper = param.upper;
+  check_eps_range(param, eps);
   std::mt19937_64 rng(direction_seed);
   std::normal_distribution<double> normal;
   const size_t count = static_cast<size_t>(directions);
-  std::vector<std::vector<float>> plus(count), minus(count);
+  CheckSteps steps;
+  steps.plus.resize(count), steps.minus.resize(count);
   // A vertex positions buffer: copies of a vertex at one position (a cube's split corners, a uv
   // seam) move together, as the geometry gradient assumes (boundary.h: welded edges). Moved
   // apart they open cracks between faces, a kink in the image (the crack's width is |step|) whose
@@ -458,7 +433,7 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
   for (int d = 0; d < directions; ++d) {
     // Elements are i.i.d. standard normal (not a unit vector): every element moves by about eps,
     // which keeps the perturbation far above float resolution even for million-texel buffers.
-    std::vector<float>&p = plus[size_t(d)], &m = minus[size_t(d)];
+    std::vector<float>&p = steps.plus[size_t(d)], &m = steps.minus[size_t(d)];
     p.resize(theta.size()), m.resize(theta.size());
     std::vector<double> drawn(theta.size());
     for (size_t i = 0; i < theta.size(); ++i) {
@@ -479,6 +454,42 @@ std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, c
       throw InputError(s.str());
     }
   }
+  return steps;
+}
+
+std::vector<CheckRow> directional_check(Scene& scene, const std::string& name, const GradientRequest& rq,
+                                        int directions, double eps, uint64_t direction_seed, int seeds) {
+  int h = scene.params.find(name);
+  if (h < 0) throw InputError("unknown parameter '" + name + "' (see `backlight params`)");
+  if (seeds < 1) throw InputError("--seeds must be ≥ 1");
+  scene.params.require_grad({name});
+  const std::vector<float> theta = scene.params[h].value;
+
+  // Appearance parameters: the sampling tables are deliberately not rebuilt (see header). A
+  // geometry parameter moves meshes or a camera: they are re-posed (and the BVH and emitter
+  // tables rebuilt) for every render, or both renders would show the scene as it was.
+  const bool geometry = scene.params[h].geometry;
+  auto set_values = [&](const std::vector<float>& v) {
+    scene.params[h].value = v;
+    if (geometry) scene.prepare_sampling();
+  };
+  // θ goes back however the check ends: an error, a pass cancelled (Ctrl-C in Python), bad_alloc.
+  struct Restore {
+    std::function<void()> restore;
+    ~Restore() {
+      try {
+        restore();
+      } catch (...) {  // nothing to report it to from a destructor; θ itself is valid
+      }
+    }
+  } restore_theta{[&] { set_values(theta); }};
+
+  // The directions and their steps first. Steps are clamped into the valid range (a black texel
+  // steps only upwards; the adjoint side predicts the change of the steps actually taken, below);
+  // an eps as wide as the range itself is a mistake (|g| > 1, albedos of 1e30).
+  const CheckSteps steps = check_steps(scene, h, directions, eps, direction_seed);
+  const std::vector<std::vector<float>>&plus = steps.plus, &minus = steps.minus;
+  const size_t count = static_cast<size_t>(directions);
 
   // Per seed: the adjoint's directional derivatives and the central differences of renders at that
   // seed (common random numbers), paired.

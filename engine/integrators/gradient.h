@@ -126,6 +126,13 @@ CheckSummary summarize_check(const std::vector<CheckRow>& rows, int seeds, doubl
 // silhouettes) same-seed differences jump, and the check is on the expectation (CheckRow::z).
 std::vector<CheckRow> directional_check(Scene& scene, const std::string& param, const GradientRequest& request,
                                         int directions, double eps, uint64_t direction_seed, int seeds = 1);
+// directional_check's steps θ ± eps·v for parameter `handle` (the directions drawn as described
+// above, clamped into the valid range), one pair per direction; throws InputError where a step
+// is not finite or every element rounds back to θ.
+struct CheckSteps {
+  std::vector<std::vector<float>> plus, minus;
+};
+CheckSteps check_steps(const Scene& scene, int handle, int directions, double eps, uint64_t direction_seed);
 // For a mesh's vertex positions parameter (handle), per vertex the first vertex at bitwise the same
 // position (−0 as +0, as edges are welded): directional_check moves such copies together. Empty
 // for any other parameter.

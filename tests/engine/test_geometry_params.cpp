@@ -4,6 +4,7 @@
 // differences of renders over seeds (visibility moves: |z| < 4), and the re-posing itself.
 #include <catch2/catch.hpp>
 
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -436,7 +437,8 @@ TEST_CASE("check's directions keep a mesh's split vertices together", "[geometry
   auto scene = build(pose_scene());
   const int positions = scene->params.find("box.positions");
   const std::vector<uint32_t> first = positions_welding(*scene, positions);
-  const std::vector<float>& p = scene->params[positions].value;
+  const std::vector<float> p0 = scene->params[positions].value;
+  const std::vector<float>& p = p0;
   REQUIRE(first.size() == 24);
   std::set<uint32_t> groups(first.begin(), first.end());
   CHECK(groups.size() == 8);  // a cube's 8 corners, 3 copies each
@@ -456,6 +458,24 @@ TEST_CASE("check's directions keep a mesh's split vertices together", "[geometry
   CHECK(positions_welding(*scene, positions)[7] == positions_welding(*scene, positions)[5]);
   CHECK(positions_welding(*scene, scene->params.find("box.translate")).empty());
   CHECK(positions_welding(*scene, scene->params.find("box.albedo")).empty());
+  // The check's steps: every copy of a corner takes its first copy's step, and the corners differ.
+  scene->params[positions].value = p0;
+  const CheckSteps steps = check_steps(*scene, positions, 3, 0.01, 7);
+  REQUIRE(steps.plus.size() == 3);
+  for (int d = 0; d < 3; ++d) {
+    std::set<std::array<float, 3>> corners;
+    for (uint32_t v = 0; v < 24; ++v) {
+      INFO("direction " << d << ", vertex " << v);
+      for (int c = 0; c < 3; ++c) {
+        CHECK(steps.plus[size_t(d)][3 * v + c] == steps.plus[size_t(d)][3 * first[v] + c]);
+        CHECK(steps.minus[size_t(d)][3 * v + c] == steps.minus[size_t(d)][3 * first[v] + c]);
+        CHECK(steps.plus[size_t(d)][3 * v + c] != p0[3 * v + c]);
+      }
+      corners.insert(
+          {steps.plus[size_t(d)][3 * v], steps.plus[size_t(d)][3 * v + 1], steps.plus[size_t(d)][3 * v + 2]});
+    }
+    CHECK(corners.size() == 8);
+  }
 }
 
 // [expectation]: as above.
