@@ -1,32 +1,12 @@
 #include "engine/integrators/edges.h"
 
+#include "engine/core/weld.h"
+
 #include <algorithm>
-#include <cstring>
-#include <unordered_map>
 
 namespace bl::edges {
 
 namespace {
-
-// Welding key: a position's bits, −0 taken as +0 (a sphere's pole copies differ only there).
-// Positions that are merely close do not weld (a sphere's seam: cos 2π ≠ 1 in float); their
-// edges count as boundary edges, which costs samples but no bias where both sides see the same.
-struct PositionKey {
-  uint32_t x, y, z;
-  bool operator==(const PositionKey& o) const { return x == o.x && y == o.y && z == o.z; }
-};
-struct PositionHash {
-  size_t operator()(const PositionKey& k) const { return size_t(mix64((uint64_t(k.x) << 32 | k.y) ^ mix64(k.z))); }
-};
-
-uint32_t weld_id(const Vec3f& p, std::unordered_map<PositionKey, uint32_t, PositionHash>& ids) {
-  const float x = p.x + 0.f, y = p.y + 0.f, z = p.z + 0.f;  // −0 + 0 = +0
-  PositionKey key;
-  std::memcpy(&key.x, &x, 4);
-  std::memcpy(&key.y, &y, 4);
-  std::memcpy(&key.z, &z, 4);
-  return ids.emplace(key, uint32_t(ids.size())).first->second;
-}
 
 bool front_facing(const Mesh& m, uint32_t face, const Vec3f& eye) {
   return dot(m.face_normals[face], eye - m.positions[m.indices[3 * size_t(face)]]) > 0.f;
@@ -83,9 +63,10 @@ EdgeTable edge_topology(const Scene& scene, const std::vector<int>& wanted, cons
     if (material.is_null) continue;  // invisible
     const bool textured =
         material.albedo.bitmap || material.specular.bitmap || material.roughness.bitmap || material.metallic.bitmap;
-    std::unordered_map<PositionKey, uint32_t, PositionHash> ids;
+    PositionWelder welder;  // engine/core/weld.h
     std::vector<uint32_t> welded(m.vertex_count());
-    for (size_t v = 0; v < welded.size(); ++v) welded[v] = weld_id(m.positions[v], ids);
+    for (size_t v = 0; v < welded.size(); ++v)
+      welded[v] = welder.id(m.positions[v].x, m.positions[v].y, m.positions[v].z);
     // (welded end a < welded end b, face, corner) for every face edge, grouped by ends.
     struct Record {
       uint64_t key;

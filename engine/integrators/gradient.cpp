@@ -5,13 +5,11 @@
 #include "engine/scene/volume_io.h"
 
 #include <algorithm>
-#include <array>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <functional>
 #include <limits>
-#include <map>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -19,6 +17,7 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/core/errors.h"
+#include "engine/core/weld.h"
 #include "engine/dist/dist.h"
 #include "engine/integrators/boundary.h"
 #include "engine/integrators/interior.h"
@@ -391,11 +390,13 @@ std::vector<uint32_t> positions_welding(const Scene& scene, int handle) {
   for (const MeshPose& pose : scene.mesh_poses)
     if (pose.positions == handle) {
       const std::vector<float>& p0 = scene.params[handle].value;
-      std::map<std::array<float, 3>, uint32_t> seen;
+      PositionWelder welder;  // as the edges weld (engine/core/weld.h)
+      std::vector<uint32_t> first_of_id;
       first.resize(p0.size() / 3);
       for (uint32_t v = 0; v < first.size(); ++v) {
-        const std::array<float, 3> key = {p0[3 * v] + 0.f, p0[3 * v + 1] + 0.f, p0[3 * v + 2] + 0.f};
-        first[v] = seen.emplace(key, v).first->second;
+        const uint32_t id = welder.id(p0[3 * v], p0[3 * v + 1], p0[3 * v + 2]);
+        if (id == first_of_id.size()) first_of_id.push_back(v);
+        first[v] = first_of_id[id];
       }
     }
   return first;

@@ -2,10 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <stdexcept>
 #include <string>
-#include <unordered_map>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -16,6 +14,7 @@
 #include <Eigen/SparseCore>
 
 #include "engine/core/errors.h"
+#include "engine/core/weld.h"
 
 namespace bl {
 
@@ -58,29 +57,14 @@ LargeSteps::LargeSteps(const std::vector<float>& positions, const std::vector<ui
   Impl& s = *impl_;
   s.lambda = lambda;
   const size_t n = positions.size() / 3;
-  // Weld vertices with bitwise equal positions (−0 and +0 differ, which only splits a seam at 0).
-  struct Key {
-    uint32_t b[3];
-    bool operator==(const Key& o) const { return b[0] == o.b[0] && b[1] == o.b[1] && b[2] == o.b[2]; }
-  };
-  struct KeyHash {
-    size_t operator()(const Key& k) const {
-      uint64_t h = k.b[0] * 0x9e3779b97f4a7c15ull;
-      h = (h ^ k.b[1]) * 0xbf58476d1ce4e5b9ull;
-      h = (h ^ k.b[2]) * 0x94d049bb133111ebull;
-      return size_t(h ^ (h >> 31));
-    }
-  };
-  std::unordered_map<Key, uint32_t, KeyHash> ids;
-  ids.reserve(n);
+  // Weld vertices at one position (engine/core/weld.h; −0 and +0 weld, as the edges do).
+  PositionWelder welder;
+  welder.reserve(n);
   s.node.resize(n);
   for (size_t i = 0; i < n; ++i) {
-    Key k;
-    std::memcpy(k.b, &positions[3 * i], sizeof k.b);
-    auto [it, fresh] = ids.try_emplace(k, uint32_t(ids.size()));
-    s.node[i] = it->second;
-    if (fresh) s.copies.push_back(0.f);
-    s.copies[it->second] += 1.f;
+    s.node[i] = welder.id(positions[3 * i], positions[3 * i + 1], positions[3 * i + 2]);
+    if (s.node[i] == s.copies.size()) s.copies.push_back(0.f);
+    s.copies[s.node[i]] += 1.f;
   }
   const size_t nodes = s.copies.size();
   // Unique undirected edges between distinct nodes.

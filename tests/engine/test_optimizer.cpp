@@ -957,6 +957,11 @@ TEST_CASE("large steps: u = (I + lambda L) x round-trips and the u-gradient is t
   LargeSteps ls(mesh.x, mesh.indices, lambda, "test");
   CHECK(ls.vertex_count() == 7);
   CHECK(ls.node_count() == 6);  // the seam copy is welded to vertex 0
+  // A copy whose zero coordinates are −0 (a mirrored or negated mesh) is at the same position, as
+  // for the edges of the boundary terms (engine/core/weld.h); it was a separate node.
+  SeamMesh negated;
+  negated.x[18] = -0.f, negated.x[20] = -0.f;
+  CHECK(LargeSteps(negated.x, negated.indices, lambda, "test").node_count() == 6);
   // u = M x by hand for the apex (vertex 0, neighbours 1..4 through either copy): degree 4.
   const std::vector<float> u = ls.to_u(mesh.x);
   const double apex_y = (1 + 4 * lambda) * 1.0 - lambda * (0 + 0 + 0 + 0);
