@@ -743,8 +743,8 @@ TEST_CASE("check's z threshold: Student's t quantile of the 4-sigma tail", "[gra
 // The check's verdict measures each direction's error against the RMS of the finite differences
 // over the directions (the typical ⟨∇, v⟩): a direction nearly orthogonal to the gradient no longer
 // fails on the finite difference's own truncation error, and an adjoint off by a factor beyond the
-// tolerance still fails (the largest |fd| is at least the RMS). Over seeds, a check passes
-// conclusively when some direction resolves a 25% factor error.
+// tolerance still fails (the largest |fd| is at least the RMS). Over seeds, a pass is conclusive
+// when every direction resolves an error of 25% of the RMS in its derivative.
 TEST_CASE("check's verdict: errors against the RMS of the directional derivatives", "[gradient][check]") {
   auto row = [](double adjoint, double fd) {
     CheckRow r;
@@ -805,7 +805,7 @@ TEST_CASE("check's verdict: errors against the RMS of the directional derivative
   CHECK(s.resolution[2] == Approx(t * 0.69 / rms));
   CHECK(s.resolution_overall == Approx(s.resolution[2]));
   CHECK(s.resolution_overall == Approx(0.214).margin(0.001));
-  // Where no direction resolves 25%: a pass is inconclusive.
+  // Where the directions resolve no error of 25% of the RMS: a pass is inconclusive.
   for (CheckRow& r : rows) r.difference_stderr *= 10, r.z /= 10;
   s = summarize_check(rows, 512, 0.01);
   CHECK(s.passed);
