@@ -117,6 +117,16 @@ def write_json(name, data):
     return path
 
 
+def plot_performance():
+    """Redraws bench/results/performance.png (tools/plot_perf) from the latest results of
+    bench/primal, bench/gradient, bench/volume and bench/profile."""
+    import importlib.util
+    if importlib.util.find_spec("matplotlib") is None:
+        print("bench: python3-matplotlib missing, no plot (tools/deps installs it)")
+        return
+    subprocess.run([os.path.join(ROOT, "tools", "plot_perf"), RESULTS], check=True)
+
+
 def write_text(name, text):
     """Like write_json, for CSV and tables; a refused run's text goes to bench/results/tmp/."""
     refused = _START_LOAD is not None and _START_LOAD > (os.cpu_count() or 1)
