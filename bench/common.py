@@ -120,8 +120,8 @@ def write_json(name, data):
 def plot_performance():
     """Redraws bench/results/performance.png (tools/plot_perf) from the latest results of
     bench/primal, bench/gradient, bench/volume and bench/profile."""
-    import importlib.util
-    if importlib.util.find_spec("matplotlib") is None:
+    # tools/plot_perf runs under /usr/bin/python3 (its #! line), whatever python runs the bench.
+    if subprocess.run(["/usr/bin/python3", "-c", "import matplotlib"], stderr=subprocess.DEVNULL).returncode != 0:
         print("bench: python3-matplotlib missing, no plot (tools/deps installs it)")
         return
     subprocess.run([os.path.join(ROOT, "tools", "plot_perf"), RESULTS], check=True)
