@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <iostream>
 #include <memory>
+#include <new>
 #include <optional>
 
 #include <nlohmann/json.hpp>
@@ -79,10 +80,17 @@ struct SceneFlags {
       throw InputError("--camera " + std::to_string(camera) + ": the scene has " + std::to_string(s->cameras.size()) +
                        " camera(s)");
     if (!resolution.empty()) {
-      int w = 0, h = 0;
-      char x = 0, extra = 0;
-      if (std::sscanf(resolution.c_str(), "%d%c%d%c", &w, &x, &h, &extra) != 3 || (x != 'x' && x != 'X') || w < 1 ||
-          h < 1 || w > 16384 || h > 16384)
+      // Digits only, at most 5 per side: sscanf's %d wrapped 4294967304 around to 8.
+      const auto side = [&](const std::string& digits) {
+        if (digits.empty() || digits.size() > 5 ||
+            !std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }))
+          return 0;
+        return std::stoi(digits);
+      };
+      const size_t x = resolution.find_first_of("xX");
+      const int w = x == std::string::npos ? 0 : side(resolution.substr(0, x));
+      const int h = x == std::string::npos ? 0 : side(resolution.substr(x + 1));
+      if (w < 1 || h < 1 || w > 16384 || h > 16384)
         throw InputError("--resolution '" + resolution + "': expected WxH, each side in 1..16384, e.g. 256x256");
       for (auto& c : s->cameras) c.width = w, c.height = h;
       for (auto& c : s->cameras) c.update();
@@ -421,6 +429,12 @@ int main(int argc, char** argv) {
   } catch (const std::filesystem::filesystem_error& e) {
     // A path the user gave (too long, not permitted, a file where a folder was meant).
     return dist::fail(2, e.path1().string().substr(0, 200) + ": " + e.code().message());
+  } catch (const std::bad_alloc&) {
+    // Inputs within every limit can still ask for more memory than the machine has (a 16384²
+    // film, a schedule's 16384² texture): the request is too large, not a bug.
+    return dist::fail(2,
+                      "out of memory: the scene, resolution or parameters need more memory than this process can "
+                      "get (lower the resolution, the parameters' sizes or the thread count)");
   } catch (const std::exception& e) {
     return dist::fail(3, std::string("internal error: ") + e.what());  // 1 is a failed check
   }

@@ -13,9 +13,11 @@ namespace bl {
 int ParamStore::add(Param p, const std::string& where) {
   // Parameter names become file names (<name>.grad.exr, params --dump): a '/' or a backslash in an
   // owner's name wrote outside the output folder (an absolute name replaced the folder).
-  if (p.name.empty() || p.name.front() == '.' || p.name.find_first_of("/\\") != std::string::npos)
-    throw InputError(where + ": parameter name '" + p.name +
-                     "': names must not be empty or contain '/' or '\\' (they become file names)");
+  const bool control = std::any_of(p.name.begin(), p.name.end(),
+                                   [](char c) { return static_cast<unsigned char>(c) < 0x20 || c == 0x7f; });
+  if (p.name.empty() || p.name.front() == '.' || p.name.find_first_of("/\\") != std::string::npos || control)
+    throw InputError(where + ": parameter name '" + (control ? std::string("(with a control character)") : p.name) +
+                     "': names must not be empty or contain '/', '\\' or control characters (they become file names)");
   if (find(p.name) >= 0) throw InputError(where + ": duplicate parameter name '" + p.name + "'");
   uint64_t total = total_values_;
   limits::add_to_total(where, "total parameter size (values of all parameters)", total, p.value.size(),

@@ -3,6 +3,7 @@
 // consumed (unknown keys are reported with their JSON pointer), values are type- and
 // range-checked, and errors are one line "<file>: <pointer>: <problem>".
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -185,6 +186,35 @@ inline json parse_json_text(const std::string& text, const std::string& file) {
     if (auto p = msg.find("] "); p != std::string::npos) msg = msg.substr(p + 2);
     throw file_error(file, "invalid JSON (" + msg + ")");
   }
+}
+
+// What is wrong with `name` as the name of a scene object whose parameters are "<name>.<key>" and
+// whose outputs are files named after it (gradients, an optimizer's targets and snapshots), or ""
+// when nothing is: empty, a '.' (the parameter separator), a '/' or '\\' (it would name a file in
+// another folder, "../x" one outside the output folder), a NUL byte or another control character.
+inline std::string object_name_problem(const std::string& name) {
+  if (name.empty()) return "is empty";
+  for (char ch : name) {
+    if (ch == '.') return "contains '.' (parameters are named <object>.<key>)";
+    if (ch == '/' || ch == '\\') return "contains a path separator (outputs are files named after it)";
+    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) return "contains a control character or NUL byte";
+  }
+  return "";
+}
+
+// `name` for a one-line message: control characters and NUL as \xNN, at most 64 characters.
+inline std::string printable_name(const std::string& name) {
+  std::string out;
+  for (char ch : name.substr(0, 64)) {
+    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
+      out += hex;
+    } else {
+      out += ch;
+    }
+  }
+  return name.size() > 64 ? out + "..." : out;
 }
 
 struct Camera;

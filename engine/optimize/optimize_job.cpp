@@ -205,6 +205,8 @@ Config parse_config(const std::string& path) {
       c.scene_overrides.push_back(override_string(it.key(), it.value(), s, dir));
   }
   if (n.string("output").empty()) n.fail_at("output", "an empty folder name");
+  // The operating system would make the folder named by the part before a NUL byte.
+  if (n.string("output").find('\0') != std::string::npos) n.fail_at("output", "the folder name contains a NUL byte");
   c.output = (dir / n.string("output")).lexically_normal().string();
   c.iterations = int(n.integer("iterations", 100, 1, 10000000));
   c.seed = uint64_t(n.integer("seed", 0, 0, 4294967295));
@@ -764,7 +766,12 @@ class Job {
       if (index < 0 && !v.empty() && v.size() <= 9 && v.find_first_not_of("0123456789") == std::string::npos)
         index = std::stoi(v);  // at most 9 digits: fits an int
       if (index < 0 || size_t(index) >= scene_->cameras.size())
-        throw file_error(c_.file, "/views/cameras: unknown camera '" + v + "'");
+        throw file_error(c_.file, "/views/cameras: unknown camera '" + printable_name(v) + "'");
+      // A view's target is a file named after its camera (targets/NAME.exr): "../x" would be
+      // written outside the output folder. Refused before the folder is made.
+      const std::string& name = scene_->cameras[size_t(index)].name;
+      if (const std::string problem = object_name_problem(name); !problem.empty())
+        throw file_error(c_.file, "/views/cameras: camera name '" + printable_name(name) + "' " + problem);
       cameras_.push_back(index);
     }
     if (c_.width)

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <iomanip>
+#include <limits>
 #include <sstream>
 #include <unordered_map>
 
@@ -90,6 +91,18 @@ void Scene::prepare_sampling() {
 }
 
 void Scene::prepare_sampling_only() {
+  if (environment.present && environment.is_map) {
+    // Each factor is within its range (texels and scale ≤ 1e30), their product need not be: an
+    // infinite radiance would write inf pixels with exit 0.
+    const std::vector<float>& v = params[environment.param].value;
+    const float brightest = v.empty() ? 0.f : *std::max_element(v.begin(), v.end());
+    if (double(brightest) * double(environment.scale) > double(std::numeric_limits<float>::max())) {
+      std::ostringstream s;
+      s << source << ": environment: radiance up to " << brightest << " × scale " << environment.scale
+        << " exceeds float's range (lower the scale or the map's values)";
+      throw InputError(s.str());
+    }
+  }
   environment.prepare(params);
   for (auto& m : media) {
     m.prepare(params);

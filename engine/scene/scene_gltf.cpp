@@ -817,7 +817,8 @@ class UniqueNames {
 
 std::string sanitize(std::string name) {
   for (auto& c : name)
-    if (c == '.' || c == ' ' || c == '=' || c == '/' || c == '\\') c = '_';  // names become file names
+    if (c == '.' || c == ' ' || c == '=' || c == '/' || c == '\\' || static_cast<unsigned char>(c) < 0x20 || c == 0x7f)
+      c = '_';  // names become file names (and one-line messages)
   return name;
 }
 

@@ -24,6 +24,8 @@ namespace fs = std::filesystem;
 Camera parse_camera(Node& n, const std::string& default_name) {
   Camera c;
   c.name = n.string("name", default_name);
+  if (const std::string problem = object_name_problem(c.name); !problem.empty())
+    n.fail_at("name", "camera name '" + printable_name(c.name) + "' " + problem);
   c.origin = n.vec3("origin");
   c.target = n.vec3("target");
   c.up = n.vec3("up", {0, 1, 0});
@@ -199,8 +201,8 @@ struct Loader {
   }
 
   void medium(const std::string& name, Node n) {
-    if (name.empty() || name.find('.') != std::string::npos)
-      n.fail("medium names must be non-empty and contain no '.'");
+    if (const std::string problem = object_name_problem(name); !problem.empty())
+      n.fail("medium name '" + printable_name(name) + "' " + problem);
     Medium m;
     m.name = name;
     const std::string type = n.string("type");
@@ -275,7 +277,8 @@ struct Loader {
   }
 
   void material(const std::string& name, Node n) {
-    if (name.find('.') != std::string::npos) n.fail("material names must not contain '.'");
+    if (const std::string problem = object_name_problem(name); !problem.empty())
+      n.fail("material name '" + printable_name(name) + "' " + problem);
     Material m;
     m.name = name;
     std::string type = n.string("type");
@@ -386,8 +389,8 @@ struct Loader {
 
   void shape(Node n, std::set<std::string>& names) {
     std::string name = n.string("name");
-    if (name.empty() || name.find('.') != std::string::npos)
-      n.fail_at("name", "shape names must be non-empty and contain no '.'");
+    if (const std::string problem = object_name_problem(name); !problem.empty())
+      n.fail_at("name", "shape name '" + printable_name(name) + "' " + problem);
     if (!names.insert(name).second) n.fail_at("name", "duplicate shape name '" + name + "'");
     std::string type = n.string("type");
     Transform to_world;
