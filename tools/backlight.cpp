@@ -358,6 +358,11 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                    "agree in expectation: use --seeds N with --adjoint-image.\n",
                    name.c_str());
   }
+  if (rq.method == GradientMethod::Rb && c.seeds == 1)  // helper-41: a bare FAIL, without a word
+    std::fprintf(stderr,
+                 "note: rb carries the adjoint along paths of its own (it does not replay the render's), so its\n"
+                 "gradient agrees with same-seed differences in expectation, not per seed: use --seeds N\n"
+                 "(prb and taped agree per seed).\n");
   if (c.seeds > 1 && c.adjoint_image.empty())
     std::fprintf(stderr,
                  "note: with a loss, the mean over seeds of same-seed differences is the derivative of the expected\n"

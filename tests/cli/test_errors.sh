@@ -1084,6 +1084,18 @@ check_inconclusive() {
     fail "check of a roughness: no note on sampling: $(cat err.inconclusive)"
 }
 in_background check_inconclusive
+# check --method rb at one seed: its adjoint follows paths of its own, so it agrees in expectation
+# only; the check said FAIL without a word (helper-41). prb gets no such note.
+check_rb_note() {
+  "$bin" check "$small" --spp 1 --rr-depth 0 --adjoint-image t16.exr --param white.albedo --method rb \
+    --directions 1 >out.rb_note 2>err.rb_note || true
+  grep -q "note: rb carries the adjoint along paths of its own" err.rb_note ||
+    fail "check --method rb: no note: $(cat err.rb_note)"
+  "$bin" check "$small" --spp 1 --rr-depth 0 --adjoint-image t16.exr --param white.albedo \
+    --directions 1 >out.prb_note 2>err.prb_note || true
+  ! grep -q "note: rb" err.prb_note || fail "check --method prb printed the rb note: $(cat err.prb_note)"
+}
+in_background check_rb_note
 # grad --out: an earlier run's gradient files that this run does not write, and temporaries of
 # killed runs (pid no longer running), are removed; other files and live temporaries stay.
 grad_cleans_its_folder() {
