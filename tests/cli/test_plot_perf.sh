@@ -54,23 +54,21 @@ bad empty "no benchmark results in"
 mkdir "$tmp/malformed"
 printf '{"machine": {"run": "x", ' > "$tmp/malformed/gradient.json"
 bad malformed "malformed/gradient.json"
-mkdir "$tmp/missing"
-/usr/bin/python3 - "$repo/bench/results/gradient.json" "$tmp/missing/gradient.json" <<'PY'
+# variant FOLDER FILE PYTHON: FOLDER/FILE = the committed bench/results/FILE with PYTHON applied to `data`.
+variant() {
+  mkdir "$tmp/$1"
+  /usr/bin/python3 - "$repo/bench/results/$2" "$tmp/$1/$2" "$3" <<'PY'
 import json, sys
 data = json.load(open(sys.argv[1]))
-del data["rb_backward_over_primal"]
+exec(sys.argv[3])
 json.dump(data, open(sys.argv[2], "w"))
 PY
+}
+variant missing gradient.json 'del data["rb_backward_over_primal"]'
 bad missing "no number 'rb_backward_over_primal'"
 mkdir "$tmp/notbench"
 echo '[1, 2, 3]' > "$tmp/notbench/profile.json"
 bad notbench "notbench/profile.json: no machine.run"
-mkdir "$tmp/shares"
-/usr/bin/python3 - "$repo/bench/results/profile.json" "$tmp/shares/profile.json" <<'PY'
-import json, sys
-data = json.load(open(sys.argv[1]))
-data["prb"]["transport_shares_percent"]["ray queries (Embree)"] = "many"
-json.dump(data, open(sys.argv[2], "w"))
-PY
+variant shares profile.json 'data["prb"]["transport_shares_percent"]["ray queries (Embree)"] = "many"'
 bad shares "no table of numbers 'prb.transport_shares_percent'"
 echo "test_plot_perf: ok"
