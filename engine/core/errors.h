@@ -3,6 +3,7 @@
 // exits with code 2; they are never assertions.
 #include <unistd.h>
 
+#include <cstdio>
 #include <filesystem>
 #include <stdexcept>
 #include <string>
@@ -21,6 +22,21 @@ struct InputError : std::runtime_error {
     return s;
   }
 };
+
+// `name` for a one-line message: control characters and NUL as \xNN, at most 64 characters.
+inline std::string printable_name(const std::string& name) {
+  std::string out;
+  for (char ch : name.substr(0, 64)) {
+    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
+      out += hex;
+    } else {
+      out += ch;
+    }
+  }
+  return name.size() > 64 ? out + "..." : out;
+}
 
 // "<file>: <problem>" — the one-line form every loader uses.
 inline InputError file_error(const std::string& file, const std::string& problem) {

@@ -202,21 +202,6 @@ inline std::string object_name_problem(const std::string& name) {
   return "";
 }
 
-// `name` for a one-line message: control characters and NUL as \xNN, at most 64 characters.
-inline std::string printable_name(const std::string& name) {
-  std::string out;
-  for (char ch : name.substr(0, 64)) {
-    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
-      char hex[8];
-      std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
-      out += hex;
-    } else {
-      out += ch;
-    }
-  }
-  return name.size() > 64 ? out + "..." : out;
-}
-
 struct Camera;
 // Reads a camera object (scene format, scenes/README.md); used by scenes and optimizer configs.
 Camera parse_camera(Node& n, const std::string& default_name);

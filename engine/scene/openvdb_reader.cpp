@@ -2,8 +2,10 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
 
+#include <openvdb/io/Stream.h>
 #include <openvdb/openvdb.h>
 
 #include "engine/core/errors.h"
@@ -48,27 +50,35 @@ VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name,
   require_input_file(path);
   limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
   openvdb_initialize_once();
-  openvdb::io::File file(path);
-  file.open(false);  // no delayed loading: the file may change under us
-  // Choose the grid from the metadata alone.
-  openvdb::GridPtrVecPtr headers = file.readAllGridMetadata();
+  // Read through a stream of our own, not openvdb::io::File: OpenVDB does not check its reads,
+  // and a file cut short by up to 5 bytes loaded with garbage in its last voxel. The stream's
+  // state after the whole file is read tells (no delayed loading: the file may change under us).
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw file_error(path, "cannot open the file");
+  openvdb::io::Stream stream(in, /*delayLoad=*/false);
+  if (in.fail()) throw file_error(path, "the file is cut short (it ends inside its grids' data)");
+  openvdb::GridPtrVecPtr grids = stream.getGrids();
   std::string chosen, candidates;
+  openvdb::GridBase::Ptr base;
   int supported_count = 0;
-  for (const auto& g : *headers) {
-    candidates += (candidates.empty() ? "" : ", ") + g->getName() + " (" + g->valueType() + ")";
+  for (const auto& g : *grids) {
+    candidates += (candidates.empty() ? "" : ", ") + printable_name(g->getName()) + " (" + g->valueType() + ")";
     if (!supported(*g)) continue;
     ++supported_count;
-    if (!grid_name.empty() ? g->getName() == grid_name : (g->getName() == "density" || chosen.empty()))
+    if (!grid_name.empty() ? g->getName() == grid_name && !base
+                           : (g->getName() == "density" && chosen != "density") || chosen.empty()) {
       chosen = g->getName();
+      base = g;
+    }
   }
-  if (headers->empty()) throw file_error(path, "no grids in the file");
+  if (grids->empty()) throw file_error(path, "no grids in the file");
   if (!grid_name.empty() && chosen.empty())
-    throw file_error(path, "no float or vec3s grid named '" + grid_name + "' (grids: " + candidates + ")");
+    throw file_error(path,
+                     "no float or vec3s grid named '" + printable_name(grid_name) + "' (grids: " + candidates + ")");
   if (grid_name.empty() && (supported_count == 0 || (supported_count > 1 && chosen != "density")))
     throw file_error(path, supported_count == 0 ? "no float or vec3s grid (grids: " + candidates + ")"
                                                 : "several grids; name one (grids: " + candidates + ")");
-  openvdb::GridBase::Ptr base = file.readGrid(chosen);
-  file.close();
+  chosen = printable_name(chosen);  // for messages
   if (parsed) parsed();
   const openvdb::CoordBBox box = base->evalActiveVoxelBoundingBox();
   if (box.empty()) throw file_error(path, "grid '" + chosen + "' has no active voxels");
