@@ -132,22 +132,40 @@ inline void check_nodes(const std::string& path, const nlohmann::json& doc) {
   });
 }
 
-// Indices and offsets tinygltf reads as absent (or as 0) when they are negative: the default
-// scene, an accessor's buffer view and byte offset, a primitive's indices and a material's
-// textures.
+// Indices and offsets tinygltf reads as absent (or as 0) when they are negative or not integers:
+// the default scene, an accessor's buffer view and byte offset, a buffer view's offset and stride
+// (a byteOffset of -48 read the data from offset 0), a primitive's indices, material and mode (a
+// material of -1 rendered with the default material), a texture's sampler and source, an image's
+// buffer view and a material's textures. A mesh without primitives (the schema asks for at least
+// one) drew nothing without a word. A byteStride of 0, which the schema does not allow either, is
+// read as tightly packed data, as tinygltf does: it says nothing else.
 inline void check_indices(const std::string& path, const nlohmann::json& doc) {
   require_natural(path, "", doc, "scene");
   for_each_object(doc, "accessors", [&](size_t i, const nlohmann::json& accessor) {
     for (const char* key : {"bufferView", "byteOffset"})
       require_natural(path, "accessor " + std::to_string(i), accessor, key);
   });
+  for_each_object(doc, "bufferViews", [&](size_t i, const nlohmann::json& view) {
+    for (const char* key : {"buffer", "byteOffset", "byteLength", "byteStride"})
+      require_natural(path, object_name("buffer view", i, view), view, key);
+  });
+  for_each_object(doc, "textures", [&](size_t i, const nlohmann::json& texture) {
+    for (const char* key : {"sampler", "source"})
+      require_natural(path, object_name("texture", i, texture), texture, key);
+  });
+  for_each_object(doc, "images", [&](size_t i, const nlohmann::json& image) {
+    require_natural(path, object_name("image", i, image), image, "bufferView");
+  });
   for_each_object(doc, "meshes", [&](size_t i, const nlohmann::json& mesh) {
     const auto primitives = mesh.find("primitives");
     if (primitives == mesh.end() || !primitives->is_array()) return;
+    if (primitives->empty())
+      throw file_error(path, object_name("mesh", i, mesh) + ": has no primitives (glTF asks for at least one)");
     for (size_t k = 0; k < primitives->size(); ++k)
       if ((*primitives)[k].is_object())
-        require_natural(path, object_name("mesh", i, mesh) + " primitive " + std::to_string(k), (*primitives)[k],
-                        "indices");
+        for (const char* key : {"indices", "material", "mode"})
+          require_natural(path, object_name("mesh", i, mesh) + " primitive " + std::to_string(k), (*primitives)[k],
+                          key);
   });
   for_each_object(doc, "materials", [&](size_t i, const nlohmann::json& material) {
     const std::string what = object_name("material", i, material);

@@ -335,6 +335,23 @@ expect_error gltf_accessor_past_end "count.gltf" "accessor" "past the end" -- \
   render "$(gv count 's["accessors"][4]["count"] = 100000')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_index_accessor_past_end "icount.gltf" "past the end" -- \
   render "$(gv icount 's["accessors"][7]["count"] = 10**6')" -o o.exr --resolution 8x8 --spp 1
+# Negative or fractional offsets, strides and indices tinygltf read as 0 or as absent (a byteOffset
+# of -48 read the data from 0; a material of -1 rendered the default material), and a mesh with no
+# primitives, which drew nothing: each names the object and the property.
+expect_error gltf_view_offset_negative "bvneg.gltf" "buffer view 1: byteOffset must be a non-negative integer" -- \
+  render "$(gv bvneg 's["bufferViews"][1]["byteOffset"] = -48')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_view_offset_fraction "bvfrac.gltf" "buffer view 1: byteOffset" "48.5" -- \
+  render "$(gv bvfrac 's["bufferViews"][1]["byteOffset"] = 48.5')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_view_stride_negative "bvstride.gltf" "buffer view 1: byteStride must be" -- \
+  render "$(gv bvstride 's["bufferViews"][1]["byteStride"] = -12')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_primitive_material_negative "pmat.gltf" "primitive 0: material must be a non-negative integer" -- \
+  render "$(gv pmat 's["meshes"][0]["primitives"][0]["material"] = -1')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_primitive_mode_negative "pmode.gltf" "primitive 0: mode must be" -- \
+  render "$(gv pmode 's["meshes"][0]["primitives"][0]["mode"] = -1')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_mesh_no_primitives "noprim.gltf" "has no primitives" -- \
+  render "$(gv noprim 's["meshes"][0]["primitives"] = []')" -o o.exr --resolution 8x8 --spp 1
+expect_error gltf_texture_sampler_negative "tsamp.gltf" "texture 0: sampler must be" -- \
+  render "$(gv tsamp 's["textures"][0]["sampler"] = -1')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_buffer_view_buffer "bvbuf.gltf" "re:buffer" -- \
   render "$(gv bvbuf 's["bufferViews"][0]["buffer"] = 5')" -o o.exr --resolution 8x8 --spp 1
 expect_error gltf_node "node.gltf" "node" -- \
