@@ -37,7 +37,7 @@ std::vector<std::string> tokens_of(const std::string& line) {
 // tinyobjloader reads what it cannot parse as 0 ("v nan 0 0", "v abc 0 0") and face indices with
 // atoi (an index past 2^31 wraps around to a valid vertex), so the numbers of the lines it reads
 // are checked first: v, vn and vt values are finite decimal numbers (its grammar: no nan, inf or
-// hex), face indices integers that fit its int.
+// hex), face indices integers that fit its int, at least 3 of them per face.
 void check_obj_numbers(const std::string& path, const std::string& text) {
   size_t line_number = 0;
   for (size_t at = 0; at < text.size();) {
@@ -80,6 +80,10 @@ void check_obj_numbers(const std::string& path, const std::string& text) {
             throw file_error(path, where + "face index " + c.substr(0, 40) + " is out of range");
         }
       }
+      // tinyobjloader drops a face of one or two vertices with a warning nobody reads.
+      if (tokens.size() < 4)
+        throw file_error(path, where + "a face needs at least 3 vertices, not " + std::to_string(tokens.size() - 1) +
+                                   " (lines are 'l')");
     }
   }
 }
@@ -452,6 +456,9 @@ Mesh read_ply(const std::string& path) {
                   path, "PLY face refers to vertex " + std::to_string(idx) + " of " + std::to_string(vertex_count));
             face.push_back(uint32_t(idx));
           }
+          if (face.size() < 3)  // was dropped without a word
+            throw file_error(path, "PLY face " + std::to_string(i) + " has " + std::to_string(face.size()) +
+                                       " vertex indices (a face needs at least 3)");
           for (size_t j = 1; j + 1 < face.size(); ++j) {
             limits::require_at_most(path, "triangle count", m.indices.size() / 3 + 1, limits::kMeshElements);
             m.indices.insert(m.indices.end(), {face[0], face[j], face[j + 1]});

@@ -257,6 +257,9 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
       {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999\n",
        "line 4: face index 99999999999999999999 is out of range"},
       {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3x\n", "line 4: '3x' is not a face vertex"},
+      // Faces of one or two vertices: tinyobjloader dropped them with a warning nobody read.
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2\n", "line 5: a face needs at least 3 vertices, not 2"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1\nf 1 2 3\n", "line 4: a face needs at least 3 vertices, not 1"},
   };
   for (const auto& [text, message] : cases) {
     INFO(text);
@@ -291,6 +294,13 @@ TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
        "element face 1\nproperty list float int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1 2\n",
        "PLY list count type 'float' is not an integer type"},
       {"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no end_header"},
+      // A face of fewer than 3 indices was dropped without a word.
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1 2\n2 0 1\n",
+       "PLY face 1 has 2 vertex indices (a face needs at least 3)"},
+      {"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+       "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n0\n",
+       "PLY face 0 has 0 vertex indices"},
   };
   for (const auto& [text, message] : plys) {
     INFO(text);
