@@ -5,6 +5,7 @@
 #include <ImfHeader.h>
 #include <ImfInputFile.h>
 #include <ImfOutputFile.h>
+#include <fcntl.h>
 #include <png.h>
 #include <signal.h>
 #include <unistd.h>
@@ -760,6 +761,17 @@ void check_output_format(const std::string& path) {
   }
   // Found now, not by the rename after the whole render.
   if (fs::is_directory(path, ec)) throw file_error(path, "is a folder (name an image file)");
+  // So is a folder we may not create files in (the write goes to a temporary file beside the
+  // output, then renamed): a read-only mount or /proc failed only after the work, naming the
+  // temporary file. A probe of that file's name, created and removed at once.
+  const std::string probe = temp_name(path);
+  const int fd = ::open(probe.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
+  if (fd < 0 && errno != EEXIST)
+    throw file_error(path, std::string("cannot create files in its folder (") + std::strerror(errno) + ")");
+  if (fd >= 0) {
+    ::close(fd);
+    ::unlink(probe.c_str());
+  }
   // JPEG and HDR are written by the oiio plugin: a missing plugin fails now, not after the work.
   if (ext == ".hdr" || ext == ".jpg" || ext == ".jpeg")
     (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");

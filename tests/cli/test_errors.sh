@@ -699,6 +699,10 @@ expect_error grad_out_is_file "not_a_folder" "not a folder" -- grad "$small" --s
 expect_error grad_out_unwritable "/proc/backlight" "cannot create" -- \
   grad "$small" --spp 1 --target t16.exr --out /proc/backlight/g -q
 expect_error params_dump_is_file "not_a_folder" "not a folder" -- params "$small" --dump not_a_folder
+# An image output in a folder that takes no new files failed after the render, naming the
+# temporary file (write failed ... .x.tmpNNN.exr); it is found before the work now.
+expect_error render_output_uncreatable "/proc/self/x.exr" "cannot create files in its folder" -- \
+  render "$small" -o /proc/self/x.exr --spp 1 -q
 expect_error camera_index_int_range "--camera" -- render "$small" --camera 99999999999 -o o.exr -q
 # Files that never end or never open: a FIFO blocked forever, /dev/zero read until memory ran out.
 mkfifo fifo.json
