@@ -118,8 +118,10 @@ void Scene::prepare_sampling_only() {
     const GridSize g = grid_size(params[m.density]);
     const Vec3f size = m.bbox_max - m.bbox_min;
     // In double: a box 1e30 wide made the block's diagonal, and the step count, inf.
-    const double bx = double(size.x) * std::min(m.block, g.x) / g.x, by = double(size.y) * std::min(m.block, g.y) / g.y,
-                 bz = double(size.z) * std::min(m.block, g.z) / g.z;
+    const int* block = m.majorants.size;
+    const double bx = double(size.x) * std::min(block[0], g.x) / g.x,
+                 by = double(size.y) * std::min(block[1], g.y) / g.y,
+                 bz = double(size.z) * std::min(block[2], g.z) / g.z;
     const double depth = double(majorant) * std::sqrt(bx * bx + by * by + bz * bz);
     if (depth > limits::kOpticalDepth) {
       std::ostringstream s;

@@ -146,9 +146,15 @@ inline void grid_backprop_rgb(int handle, const Param& p, const TrilinearFootpri
 // centres up to one voxel beyond the block's faces, so each bound is the maximum over the
 // block's voxels widened by one on every side (clamped). Trilinear weights are a convex
 // combination, so the bound is exact, not a guess; `headroom` (≥ 1) scales it so small parameter
-// updates between rebuilds stay under it.
+// updates between rebuilds stay under it. Along an axis of more than kMaxBlocksPerAxis · block
+// voxels the blocks are longer, so that no axis has more than kMaxBlocksPerAxis of them: a ray's
+// DDA steps through every block it crosses, and a 1×1×2²¹ grid (2¹⁸ blocks along z) rendered at
+// 1,050 samples/s against 205,000 for a 1×1×4096 one (32², 4 spp, one thread).
+inline constexpr int kMaxBlocksPerAxis = 256;
+
 struct MajorantGrid {
-  int block = 8;
+  int block = 8;               // voxels per block asked for
+  int size[3] = {8, 8, 8};     // voxels per block along x, y, z: `block`, more along a long axis
   int bx = 1, by = 1, bz = 1;  // block counts
   GridSize voxels;
   std::vector<float> value;  // per block, (z·by + y)·bx + x
@@ -162,18 +168,25 @@ inline MajorantGrid build_majorants(const Param& p, int block, float headroom) {
   m.block = std::max(1, block);
   m.voxels = grid_size(p);
   const GridSize& n = m.voxels;
-  m.bx = (n.x + m.block - 1) / m.block;
-  m.by = (n.y + m.block - 1) / m.block;
-  m.bz = (n.z + m.block - 1) / m.block;
+  const int dims[3] = {n.x, n.y, n.z};
+  for (int a = 0; a < 3; ++a)
+    m.size[a] = std::max(m.block, int((int64_t(dims[a]) + kMaxBlocksPerAxis - 1) / kMaxBlocksPerAxis));
+  const int sx = m.size[0], sy = m.size[1], sz = m.size[2];
+  m.bx = int((int64_t(n.x) + sx - 1) / sx);
+  m.by = int((int64_t(n.y) + sy - 1) / sy);
+  m.bz = int((int64_t(n.z) + sz - 1) / sz);
   m.value.assign(size_t(m.bx) * size_t(m.by) * size_t(m.bz), 0.f);
   const size_t channels = size_t(n.channels);
+  // 64-bit block bounds: a block of 2^30 voxels (a 1×1×2^30 grid's single one) times its index.
+  auto lo = [](int b, int s) { return int(std::max<int64_t>(0, int64_t(b) * s - 1)); };
+  auto hi_end = [](int b, int s, int n) { return int(std::min<int64_t>(n - 1, (int64_t(b) + 1) * s)); };
   for (int z = 0; z < m.bz; ++z)
     for (int y = 0; y < m.by; ++y)
       for (int x = 0; x < m.bx; ++x) {
         float hi = 0.f;
-        for (int iz = std::max(0, z * m.block - 1); iz <= std::min(n.z - 1, (z + 1) * m.block); ++iz)
-          for (int iy = std::max(0, y * m.block - 1); iy <= std::min(n.y - 1, (y + 1) * m.block); ++iy)
-            for (int ix = std::max(0, x * m.block - 1); ix <= std::min(n.x - 1, (x + 1) * m.block); ++ix)
+        for (int iz = lo(z, sz); iz <= hi_end(z, sz, n.z); ++iz)
+          for (int iy = lo(y, sy); iy <= hi_end(y, sy, n.y); ++iy)
+            for (int ix = lo(x, sx); ix <= hi_end(x, sx, n.x); ++ix)
               hi = std::max(hi, p.value[n.index(ix, iy, iz) * channels]);
         m.value[(size_t(z) * size_t(m.by) + size_t(y)) * size_t(m.bx) + size_t(x)] = hi * headroom;
       }
@@ -211,8 +224,8 @@ void traverse_majorants(const MajorantGrid& m, const Vec3f& o, const Vec3f& d, f
   float next[3], delta[3];
   const Vec3f start = o + d * t0;
   for (int a = 0; a < 3; ++a) {
-    // Block size in local units: `block` voxels of 1/dims each (the last block may be partial).
-    const float size = float(m.block) / float(dims[a]);
+    // Block size in local units: size[a] voxels of 1/dims each (the last block may be partial).
+    const float size = float(m.size[a]) / float(dims[a]);
     cell[a] = std::clamp(int(std::floor(start[a] / size)), 0, counts[a] - 1);
     if (d[a] > 0.f) {
       step[a] = 1;

@@ -3,6 +3,7 @@
 // lookup, majorants that bound the interpolant along rays, and a DDA whose segments tile the ray.
 #include <catch2/catch.hpp>
 
+#include <array>
 #include <cmath>
 #include <vector>
 
@@ -142,53 +143,66 @@ TEST_CASE("grid backprop is the exact transpose of the lookup", "[medium][grid][
 }
 
 TEST_CASE("majorants bound the interpolant and the DDA tiles the ray", "[medium][grid]") {
-  // A spiky grid: a few large voxels in a thin field, where too-narrow blocks would fail.
-  Param p = random_grid(19, 13, 11, 1, 5, 0.1);
-  TestRng rng(6);
-  for (int k = 0; k < 12; ++k) p.value[size_t(rng.next_u64() % p.value.size())] = 5.f;
-  const GridSize n = grid_size(p);
-  for (int block : {1, 4, 8}) {
-    const MajorantGrid m = build_majorants(p, block, 1.f);
-    for (int r = 0; r < 400; ++r) {
-      const Vec3f o(float(rng.uniform(-0.5, 1.5)), float(rng.uniform(-0.5, 1.5)), float(rng.uniform(-0.5, 1.5)));
-      Vec3f d(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)));
-      if (r % 7 == 0) d[r % 3] = 0.f;  // axis-parallel rays
-      if (length(d) < 1e-3f) continue;
-      d = normalize(d);
-      float previous_end = -1.f, first = -1.f;
-      bool ok = true;
-      traverse_majorants(m, o, d, 0.f, 10.f, [&](const MajorantSegment& s) {
-        if (first < 0) first = s.t0;
-        if (previous_end >= 0 && std::abs(s.t0 - previous_end) > 1e-5f) ok = false;  // contiguous, in order
-        if (!(s.t1 > s.t0)) ok = false;
-        previous_end = s.t1;
-        for (int i = 0; i <= 16; ++i) {
-          const float t = s.t0 + (s.t1 - s.t0) * (i + 0.5f) / 17.f;
-          Vec3f l = o + d * t;
-          for (int a = 0; a < 3; ++a) l[a] = std::clamp(l[a], 0.f, 1.f);
-          const float value = grid_eval<float>(p, trilinear_footprint(n, l), 0);
-          if (value > s.majorant * (1 + 1e-6f) + 1e-7f) ok = false;
+  // Spiky grids: a few large voxels in a thin field, where too-narrow blocks would fail. The second
+  // is long along z (2000 voxels): its blocks there are longer than `block` (at most
+  // kMaxBlocksPerAxis of them), and different from its blocks along x and y.
+  for (const auto [gx, gy, gz] : {std::array<int, 3>{19, 13, 11}, std::array<int, 3>{3, 2, 2000}}) {
+    Param p = random_grid(gx, gy, gz, 1, 5, 0.1);
+    TestRng rng(6);
+    for (int k = 0; k < 12 + gz / 50; ++k) p.value[size_t(rng.next_u64() % p.value.size())] = 5.f;
+    const GridSize n = grid_size(p);
+    for (int block : {1, 4, 8}) {
+      const MajorantGrid m = build_majorants(p, block, 1.f);
+      INFO("grid " << gx << "x" << gy << "x" << gz << " block " << block);
+      CHECK(std::max({m.bx, m.by, m.bz}) <= kMaxBlocksPerAxis);
+      CHECK(m.size[0] == block);
+      CHECK(m.size[2] == std::max(block, (gz + kMaxBlocksPerAxis - 1) / kMaxBlocksPerAxis));
+      CHECK(int64_t(m.bz) * m.size[2] >= gz);
+      CHECK(int64_t(m.bz - 1) * m.size[2] < gz);
+      for (int r = 0; r < 400; ++r) {
+        const Vec3f o(float(rng.uniform(-0.5, 1.5)), float(rng.uniform(-0.5, 1.5)), float(rng.uniform(-0.5, 1.5)));
+        Vec3f d(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)));
+        if (r % 7 == 0) d[r % 3] = 0.f;  // axis-parallel rays
+        if (length(d) < 1e-3f) continue;
+        d = normalize(d);
+        float previous_end = -1.f, first = -1.f;
+        bool ok = true;
+        int segments = 0;
+        traverse_majorants(m, o, d, 0.f, 10.f, [&](const MajorantSegment& s) {
+          ++segments;
+          if (first < 0) first = s.t0;
+          if (previous_end >= 0 && std::abs(s.t0 - previous_end) > 1e-5f) ok = false;  // contiguous, in order
+          if (!(s.t1 > s.t0)) ok = false;
+          previous_end = s.t1;
+          for (int i = 0; i <= 16; ++i) {
+            const float t = s.t0 + (s.t1 - s.t0) * (i + 0.5f) / 17.f;
+            Vec3f l = o + d * t;
+            for (int a = 0; a < 3; ++a) l[a] = std::clamp(l[a], 0.f, 1.f);
+            const float value = grid_eval<float>(p, trilinear_footprint(n, l), 0);
+            if (value > s.majorant * (1 + 1e-6f) + 1e-7f) ok = false;
+          }
+          return true;
+        });
+        // The segments cover exactly the part of [0, 10] inside the unit cube.
+        float enter = 0.f, leave = 10.f;
+        for (int a = 0; a < 3; ++a) {
+          if (d[a] == 0.f) {
+            if (o[a] < 0.f || o[a] > 1.f) enter = 1.f, leave = 0.f;
+            continue;
+          }
+          float t0 = (0.f - o[a]) / d[a], t1 = (1.f - o[a]) / d[a];
+          if (t0 > t1) std::swap(t0, t1);
+          enter = std::max(enter, t0), leave = std::min(leave, t1);
         }
-        return true;
-      });
-      // The segments cover exactly the part of [0, 10] inside the unit cube.
-      float enter = 0.f, leave = 10.f;
-      for (int a = 0; a < 3; ++a) {
-        if (d[a] == 0.f) {
-          if (o[a] < 0.f || o[a] > 1.f) enter = 1.f, leave = 0.f;
-          continue;
+        INFO("ray " << r);
+        REQUIRE(ok);
+        REQUIRE(segments <= m.bx + m.by + m.bz);
+        if (enter < leave) {
+          REQUIRE(first == Approx(enter).margin(1e-5));
+          REQUIRE(previous_end == Approx(leave).margin(1e-5));
+        } else {
+          REQUIRE(first < 0.f);
         }
-        float t0 = (0.f - o[a]) / d[a], t1 = (1.f - o[a]) / d[a];
-        if (t0 > t1) std::swap(t0, t1);
-        enter = std::max(enter, t0), leave = std::min(leave, t1);
-      }
-      INFO("block " << block << " ray " << r);
-      REQUIRE(ok);
-      if (enter < leave) {
-        REQUIRE(first == Approx(enter).margin(1e-5));
-        REQUIRE(previous_end == Approx(leave).margin(1e-5));
-      } else {
-        REQUIRE(first < 0.f);
       }
     }
   }
