@@ -433,6 +433,12 @@ void apply_override(Scene& scene, const std::string& assignment) {
   // Numbers (including nan/inf, which validation then rejects by name) unless it names a file.
   std::error_code ec;
   bool numeric = !rhs.empty() && !std::filesystem::exists(rhs, ec);
+  // A list of more than ~25 numbers is too long for a file name (255 bytes), which is no reason to
+  // read it as one: a box's 72 vertex coordinates were refused as an unusable file name.
+  if (ec && rhs.find(',') != std::string::npos && rhs.find_first_not_of("0123456789.,+-eE ") == std::string::npos) {
+    ec.clear();
+    numeric = true;
+  }
   if (ec && rhs.find_first_of("/.") != std::string::npos && ec != std::errc::no_such_file_or_directory)
     throw InputError("--set " + name + ": '" + rhs.substr(0, 120) + (rhs.size() > 120 ? "...'" : "'") +
                      " is not a usable file name (" + ec.message() + ")");

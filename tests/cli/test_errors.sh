@@ -502,6 +502,20 @@ pose_ones="$tmp/pose_adjoint.exr" cornell_ones="$tmp/cornell_adjoint.exr"
 "$bin" render "$cornell" -o "$cornell_ones" --resolution 32x32 --spp 1 -q 2>/dev/null || fail "render of cornell failed"
 expect_error set_positions_count "box.positions" "got 5 values" "[24,3]" -- \
   render "$pose" -o o.exr --set box.positions=1,2,3,4,5
+# A number list longer than a file name may be (255 bytes) was refused as an unusable file name;
+# the box's own 72 coordinates, 12 digits each, render.
+expect_error set_long_number_list "white.albedo" "got 24 values" -- \
+  render "$small" -o o.exr --set "white.albedo=$(python3 -c 'print(",".join(["0.123456789"] * 24))')"
+"$bin" params "$pose" --dump pose_dump -q >/dev/null 2>&1 || fail "params --dump of the pose scene failed"
+box_positions="$(python3 -c '
+import json, sys
+v = json.load(open(sys.argv[1]))
+v = v.get("box.positions", v)
+v = v["value"] if isinstance(v, dict) else v
+flat = [x for row in v for x in (row if isinstance(row, list) else [row])]
+print(",".join(f"{x:.10f}" for x in flat))' pose_dump/params.json)"
+[ "${#box_positions}" -gt 300 ] || fail "set_long_positions: the list of box.positions is ${#box_positions} bytes"
+expect_ok set_long_positions render "$pose" -o o_long.exr --spp 1 --resolution 8x8 -q --set "box.positions=$box_positions"
 expect_error set_positions_ply_count "sphere.ply" "2562 vertices" "box.positions" "[24,3]" -- \
   render "$pose" -o o.exr --set "box.positions=$repo/scenes/deform/sphere.ply"
 expect_error set_pose_nan "box.rotate" "re:NaN|not a (finite )?number" -- render "$pose" -o o.exr --set box.rotate=0,nan,0
