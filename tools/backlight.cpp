@@ -324,22 +324,32 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   if (!(c.tolerance >= 0) || !std::isfinite(c.tolerance)) throw InputError("--tolerance must be a finite number ≥ 0");
   if (scene->params.find(c.param) < 0) throw InputError("unknown parameter '" + c.param + "' (see `backlight params`)");
   if (c.seeds < 1 || c.seeds > 1 << 16) throw InputError("--seeds must be in 1 .. 65536");
-  check_eps_range(scene->params[scene->params.find(c.param)], c.eps);  // before any note: one error line
+  check_eps_range(scene->params[scene->params.find(c.param)], c.eps);
+  // Notes on reading the result, printed after the renders: an error found by them (a step that
+  // makes a vertex non-finite) is then the one line on stderr, not the last line after a note.
+  std::string notes;
+  const auto note = [&notes](const char* format, auto... args) {
+    const int n = std::snprintf(nullptr, 0, format, args...);
+    std::string text(size_t(std::max(n, 0)) + 1, '\0');
+    std::snprintf(text.data(), text.size(), format, args...);
+    text.resize(size_t(std::max(n, 0)));
+    notes += text;
+  };
   if (scene->settings.rr_depth > 0 &&
       (scene->settings.max_depth < 0 || scene->settings.max_depth > scene->settings.rr_depth))
-    std::fprintf(stderr,
-                 "note: Russian roulette is on (--rr-depth %d). Its continuation probability depends on the path\n"
-                 "throughput; same-seed differences see that dependence, the adjoint treats it as a constant\n"
-                 "(it vanishes in expectation). Use --rr-depth 0 for a tight comparison.\n",
-                 scene->settings.rr_depth);
+    note(
+        "note: Russian roulette is on (--rr-depth %d). Its continuation probability depends on the path\n"
+        "throughput; same-seed differences see that dependence, the adjoint treats it as a constant\n"
+        "(it vanishes in expectation). Use --rr-depth 0 for a tight comparison.\n",
+        scene->settings.rr_depth);
   if (scene->params[scene->params.find(c.param)].geometry)
-    std::fprintf(stderr,
-                 "note: '%s' moves geometry: silhouettes and shadow edges jump between the two renders of one\n"
-                 "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
-                 "on the mean over many seeds (--seeds N), not per seed. Central differences are off by\n"
-                 "eps^2/6 F''' along v, large where the loss has edges near the silhouettes: a step is small\n"
-                 "enough when half of it gives the same means.\n",
-                 c.param.c_str());
+    note(
+        "note: '%s' moves geometry: silhouettes and shadow edges jump between the two renders of one\n"
+        "seed, and the adjoint's boundary terms estimate their effect in expectation. Expect agreement\n"
+        "on the mean over many seeds (--seeds N), not per seed. Central differences are off by\n"
+        "eps^2/6 F''' along v, large where the loss has edges near the silhouettes: a step is small\n"
+        "enough when half of it gives the same means.\n",
+        c.param.c_str());
   {
     // Appearance parameters that move sampling: the BSDF's lobe and microfacet sampling, free-flight
     // and phase sampling (helper-39: they failed at one seed without a word).
@@ -352,24 +362,25 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                                     [&](const Medium& m) { return name.rfind(m.name + ".", 0) == 0; });
     if (ends_with(".roughness") || ends_with(".metallic") ||
         (medium && (ends_with(".density") || ends_with(".scale") || ends_with(".g"))))
-      std::fprintf(stderr,
-                   "note: '%s' moves sampling (microfacet or lobe choice, free flights, phase sampling): same-seed\n"
-                   "differences jump where a sample's choice flips, and the adjoint holds sampling fixed, so they\n"
-                   "agree in expectation: use --seeds N with --adjoint-image.\n",
-                   name.c_str());
+      note(
+          "note: '%s' moves sampling (microfacet or lobe choice, free flights, phase sampling): same-seed\n"
+          "differences jump where a sample's choice flips, and the adjoint holds sampling fixed, so they\n"
+          "agree in expectation: use --seeds N with --adjoint-image.\n",
+          name.c_str());
   }
   if (rq.method == GradientMethod::Rb && c.seeds == 1)  // helper-41: a bare FAIL, without a word
-    std::fprintf(stderr,
-                 "note: rb carries the adjoint along paths of its own (it does not replay the render's), so its\n"
-                 "gradient agrees with same-seed differences in expectation, not per seed: use --seeds N\n"
-                 "(prb and taped agree per seed).\n");
+    note(
+        "note: rb carries the adjoint along paths of its own (it does not replay the render's), so its\n"
+        "gradient agrees with same-seed differences in expectation, not per seed: use --seeds N\n"
+        "(prb and taped agree per seed).\n");
   if (c.seeds > 1 && c.adjoint_image.empty())
-    std::fprintf(stderr,
-                 "note: with a loss, the mean over seeds of same-seed differences is the derivative of the expected\n"
-                 "loss; the adjoint's mean is that only for parameters that do not move sampling (for roughness,\n"
-                 "density, geometry or any albedo under roulette the loss gradient correlates with the sampling\n"
-                 "terms). To test those in expectation, use --adjoint-image (a linear functional).\n");
+    note(
+        "note: with a loss, the mean over seeds of same-seed differences is the derivative of the expected\n"
+        "loss; the adjoint's mean is that only for parameters that do not move sampling (for roughness,\n"
+        "density, geometry or any albedo under roulette the loss gradient correlates with the sampling\n"
+        "terms). To test those in expectation, use --adjoint-image (a linear functional).\n");
   auto rows = directional_check(*scene, c.param, rq, c.directions, c.eps, c.direction_seed, c.seeds);
+  std::fputs(notes.c_str(), stderr);
   // Errors are measured against the RMS over the directions of the finite differences (the typical
   // ⟨∇, v⟩): a direction nearly orthogonal to the gradient has a tiny derivative whose relative
   // error is the finite difference's own truncation and rounding (summarize_check).

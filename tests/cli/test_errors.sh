@@ -1105,6 +1105,10 @@ expect_error check_eps_rounds "rounds to θ in float" -- \
   check "$small" --spp 1 --target t16.exr --param white.albedo --eps 1e-9 --rr-depth 0
 expect_error check_eps_range_before_notes "--eps 4 is not smaller than the width" -- \
   check "$small" --spp 1 --target t16.exr --param metal.roughness --eps 4
+# A step that breaks the scene is found by the renders, after which the notes are printed: the
+# error was the sixth line of stderr, under the geometry note.
+expect_error check_step_breaks_scene_before_notes "box" "vertex 0 is not finite" -- \
+  check "$pose" --spp 1 --target "$pose_ones" --param box.translate --eps 1e30 -q
 check_nothing_compared() {
   local pose="$repo/scenes/pose/scene.json" rc=0
   "$bin" render "$pose" -o tpose.exr --spp 1 --resolution 16x16 -q 2>/dev/null || { fail "check_nothing_compared: render"; return; }
