@@ -69,7 +69,7 @@ struct SceneFlags {
     app->add_option("--max-depth", max_depth,
                     "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)");
     app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off");
-    app->add_option("--threads", threads, "Worker threads (default: all cores)");
+    app->add_option("--threads", threads, "Worker threads (default, or 0: all cores)");
     app->add_flag("--quiet,-q", quiet, "No progress bar");
   }
 
@@ -123,7 +123,7 @@ struct SceneFlags {
 };
 
 std::unique_ptr<tbb::global_control> thread_limit(int threads) {
-  if (threads < 0) throw InputError("--threads must be ≥ 1");
+  if (threads < 0) throw InputError("--threads must be ≥ 1 (or 0: all cores)");
   if (threads == 0) return nullptr;
   return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
 }
@@ -500,7 +500,7 @@ int run(int argc, char** argv) {
       app.add_subcommand("optimize", "Gradient-descent optimization described by a JSON config (see README)");
   optimize_cmd->add_option("config", config, "Optimization config")->required();
   optimize_cmd->add_option("--resume", resume, "Continue from the last checkpoint in this output directory");
-  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default: all cores)");
+  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default, or 0: all cores)");
   optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
 
   if (argc > 1 && argv[1][0] != '-') {
