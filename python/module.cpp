@@ -341,6 +341,15 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
   return s;
 }
 
+// Raises SystemExit in a thread whose pass the interpreter's exit stopped (or refused). As an
+// Error its traceback was printed by threading's excepthook while the interpreter finalized, cut
+// off mid-line ("Exception in thread Thread-1 (<lambda>):\nTraceback ...", 5 runs in 5 with torch
+// imported); threading and _thread end a thread on SystemExit without a word.
+[[noreturn]] void exit_thread(const char* why) {
+  PyErr_SetString(PyExc_SystemExit, why);
+  throw py::error_already_set();
+}
+
 // Passes running now, so that interpreter exit can stop them first (stop_passes_at_exit).
 struct RunningPasses {
   std::mutex m;
@@ -388,7 +397,7 @@ void interruptible(Pass&& pass) {
   RunningPasses& passes = running_passes();
   {
     const std::lock_guard<std::mutex> lock(passes.m);
-    if (passes.exiting) throw InputError("the interpreter is exiting: no new pass starts");
+    if (passes.exiting) exit_thread("the interpreter is exiting: no new pass starts");
     passes.cancels.push_back(&cancel);
   }
   struct Unregister {
@@ -450,7 +459,7 @@ void interruptible(Pass&& pass) {
   if (interrupted) throw py::error_already_set();
   if (failure) std::rethrow_exception(failure);
   // Stopped by stop_passes_at_exit (or by finalization): the result is partial.
-  if (cancel) throw InputError("the pass was stopped: the interpreter is exiting");
+  if (cancel) exit_thread("the pass was stopped: the interpreter is exiting");
 }
 
 py::array_t<float> render_py(PyScene& s, const PassArgs& a) {
