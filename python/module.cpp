@@ -83,6 +83,13 @@ py::array_t<float> image_array(Image&& image) {
   return owning_array(std::move(image.data), {image.height, image.width, image.channels});
 }
 
+// `text` as a str, bytes that are not UTF-8 shown as \xNN (file names need not be UTF-8).
+py::str utf8_or_escaped(const std::string& text) {
+  PyObject* s = PyUnicode_DecodeUTF8(text.data(), Py_ssize_t(text.size()), "backslashreplace");
+  if (!s) throw py::error_already_set();
+  return py::reinterpret_steal<py::str>(s);
+}
+
 // Checks that `obj` is a C-contiguous float32 array of exactly `shape` with finite values and
 // returns it; `what` names it in the error.
 py::array_t<float> checked_array(const py::handle& obj, const std::vector<py::ssize_t>& shape,
@@ -173,6 +180,14 @@ std::optional<std::pair<int, int>> resolution_arg(const py::object& v) {
   const py::object w = wh[0], h = wh[1];
   return std::pair{required_int_arg(w, "resolution: width", 1, 16384),
                    required_int_arg(h, "resolution: height", 1, 16384)};
+}
+
+// The scene argument: something else (None, a file name) gave pybind11's TypeError of five lines
+// (the signature and the call) instead of one naming the argument.
+PyScene& scene_arg(const py::object& v) {
+  if (!py::isinstance<PyScene>(v))
+    throw InputError("scene: expected a backlight.Scene (backlight.load), got " + type_name(v));
+  return v.cast<PyScene&>();
 }
 
 std::string str_arg(const py::object& v, const std::string& name) {
@@ -308,6 +323,13 @@ std::unique_ptr<PyScene> load(const std::string& path, const std::optional<py::d
         }
         continue;
       }
+      // NumPy refuses a tensor that requires grad, which the message below called "got Tensor".
+      if (py::hasattr(value, "requires_grad") && py::hasattr(value, "detach") &&
+          PyObject_IsTrue(value.attr("requires_grad").ptr()) == 1)
+        throw InputError("set: '" + name +
+                         "': a tensor that requires grad (set= copies values once and gives no gradient): pass "
+                         "tensor.detach(), or render through backlight.torch.render(scene, {name: tensor}) for its "
+                         "gradient");
       if (value.is_none())  // forcecast makes it a NaN
         throw InputError("set: '" + name +
                          "': expected a number, numbers (a list or an array) or an image file name, got None");
@@ -510,6 +532,34 @@ GradientRequest request_for(const Scene& scene, const Camera& cam, const py::han
   return rq;
 }
 
+// The engine's messages name the CLI's flags ("--eps 1e-12: ... (use a larger --eps)", "--method
+// taped ...: --adjoint-seed must equal --seed"); Python callers gave keyword arguments.
+std::string keyword_names(std::string m) {
+  static const std::pair<std::string, std::string> flags[] = {{"--adjoint-image", "d_image"},
+                                                              {"--adjoint-seed", "adjoint_seed"},
+                                                              {"--seeds", "seeds"},
+                                                              {"--seed", "seed"},
+                                                              {"--eps", "eps"},
+                                                              {"--method", "method"},
+                                                              {"--spp", "spp"},
+                                                              {"--directions", "directions"},
+                                                              {"--tolerance", "tolerance"},
+                                                              {"--target", "target"}};
+  for (const auto& [flag, keyword] : flags)
+    for (size_t at = m.find(flag); at != std::string::npos; at = m.find(flag, at + keyword.size()))
+      m.replace(at, flag.size(), keyword);
+  return m;
+}
+
+template <class F>
+auto with_keyword_names(F&& f) -> decltype(f()) {
+  try {
+    return f();
+  } catch (const InputError& e) {
+    throw InputError(keyword_names(e.what()));
+  }
+}
+
 // backward and grad: the image argument (d_image, or the target when `loss` is given) checked
 // against the film, the request built, and the pass run without the GIL.
 GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* what, const std::string* loss,
@@ -523,7 +573,7 @@ GradientResult gradient_pass(PyScene& s, const py::handle& image, const char* wh
   GradientResult result;
   interruptible([&](const std::atomic<bool>* cancel) {
     rq.pass.cancel = cancel;
-    result = compute_gradient(*s.scene, rq);
+    result = with_keyword_names([&] { return compute_gradient(*s.scene, rq); });
   });
   return result;
 }
@@ -576,7 +626,8 @@ py::list check_py(PyScene& s, const std::string& param, const py::object& target
   std::vector<CheckRow> rows;
   interruptible([&](const std::atomic<bool>* cancel) {
     rq.pass.cancel = cancel;
-    rows = directional_check(*s.scene, param, rq, directions, eps, direction_seed, seeds);
+    rows = with_keyword_names(
+        [&] { return directional_check(*s.scene, param, rq, directions, eps, direction_seed, seeds); });
   });
   py::list out;
   // The CLI's verdict (summarize_check): within the tolerance of the directions' RMS, or (over
@@ -666,10 +717,14 @@ PYBIND11_MODULE(_backlight, m) {
           "spp", [](const PyScene& s) { return s.scene->settings.spp; }, "Samples per pixel of the scene file")
       .def_property_readonly(
           "seed", [](const PyScene& s) { return s.scene->settings.seed; }, "Sampler seed of the scene file")
-      .def_property_readonly("path", [](const PyScene& s) { return s.path; })
+      // The path is bytes (load takes os.fsencode of its argument); cast to str as UTF-8, a file name
+      // with the byte 0xff made scene.path and repr(scene) raise UnicodeDecodeError.
+      .def_property_readonly(
+          "path", [](const PyScene& s) { return py::module_::import("os").attr("fsdecode")(py::bytes(s.path)); },
+          "The scene file's name as os.fsdecode gives it (os.fsencode turns it back into the file system's bytes)")
       .def("__repr__", [](const PyScene& s) {
-        return "<backlight.Scene '" + s.path + "': " + std::to_string(s.scene->params.count()) + " parameters, " +
-               std::to_string(s.scene->cameras.size()) + " camera(s)>";
+        return utf8_or_escaped("<backlight.Scene '" + s.path + "': " + std::to_string(s.scene->params.count()) +
+                               " parameters, " + std::to_string(s.scene->cameras.size()) + " camera(s)>");
       });
 
   m.def("load", &load_py, py::arg("path"), py::arg("set") = py::none(), py::kw_only(),
@@ -679,17 +734,20 @@ PYBIND11_MODULE(_backlight, m) {
         "or an image file name); max_depth and rr_depth as the CLI's --max-depth and --rr-depth.");
   m.def(
       "render",
-      [](PyScene& s, const py::object& spp, const py::object& seed, const py::object& camera,
-         const py::object& resolution) { return render_py(s, pass_args(spp, seed, camera, resolution)); },
+      [](const py::object& scene, const py::object& spp, const py::object& seed, const py::object& camera,
+         const py::object& resolution) {
+        return render_py(scene_arg(scene), pass_args(spp, seed, camera, resolution));
+      },
       py::arg("scene"), py::kw_only(), py::arg("spp") = py::none(), py::arg("seed") = py::none(), py::arg("camera") = 0,
       py::arg("resolution") = py::none(),
       "Renders an image: float32 (height, width, 3). resolution = (width, height) overrides the camera's film for "
       "this call.");
   m.def(
       "backward",
-      [](PyScene& s, const py::handle& d_image, const py::object& method, const py::object& spp, const py::object& seed,
-         const py::object& adjoint_seed, const py::object& camera, const py::object& resolution,
+      [](const py::object& scene, const py::handle& d_image, const py::object& method, const py::object& spp,
+         const py::object& seed, const py::object& adjoint_seed, const py::object& camera, const py::object& resolution,
          const py::object& params) {
+        PyScene& s = scene_arg(scene);
         return backward_py(s, d_image, str_arg(method, "method"), pass_args(spp, seed, camera, resolution),
                            seed_arg(adjoint_seed, "adjoint_seed"), names_arg(params, s.scene->params));
       },
@@ -703,9 +761,10 @@ PYBIND11_MODULE(_backlight, m) {
       "(sampling is detached).");
   m.def(
       "grad",
-      [](PyScene& s, const py::handle& target, const py::object& loss, const py::object& method, const py::object& spp,
-         const py::object& seed, const py::object& adjoint_seed, const py::object& camera, const py::object& resolution,
-         const py::object& params) {
+      [](const py::object& scene, const py::handle& target, const py::object& loss, const py::object& method,
+         const py::object& spp, const py::object& seed, const py::object& adjoint_seed, const py::object& camera,
+         const py::object& resolution, const py::object& params) {
+        PyScene& s = scene_arg(scene);
         return grad_py(s, target, str_arg(loss, "loss"), str_arg(method, "method"),
                        pass_args(spp, seed, camera, resolution), seed_arg(adjoint_seed, "adjoint_seed"),
                        names_arg(params, s.scene->params));
@@ -716,14 +775,15 @@ PYBIND11_MODULE(_backlight, m) {
       "Loss of the render against target (l2, l1 or rel_l2) and its gradient: (loss, {name: gradient}, image).");
   m.def(
       "check",
-      [](PyScene& s, const py::object& param, const py::object& target, const py::object& d_image,
+      [](const py::object& scene, const py::object& param, const py::object& target, const py::object& d_image,
          const py::object& loss, const py::object& method, const py::object& directions, const py::object& eps,
          const py::object& tolerance, const py::object& direction_seed, const py::object& seeds, const py::object& spp,
          const py::object& seed, const py::object& adjoint_seed, const py::object& camera,
          const py::object& resolution) {
-        return check_py(s, str_arg(param, "param"), target, d_image, str_arg(loss, "loss"), str_arg(method, "method"),
-                        required_int_arg(directions, "directions", 1, INT32_MAX), real_arg(eps, "eps"),
-                        real_arg(tolerance, "tolerance"), required_seed_arg(direction_seed, "direction_seed"),
+        return check_py(scene_arg(scene), str_arg(param, "param"), target, d_image, str_arg(loss, "loss"),
+                        str_arg(method, "method"), required_int_arg(directions, "directions", 1, INT32_MAX),
+                        real_arg(eps, "eps"), real_arg(tolerance, "tolerance"),
+                        required_seed_arg(direction_seed, "direction_seed"),
                         required_int_arg(seeds, "seeds", 1, 1 << 16), pass_args(spp, seed, camera, resolution),
                         seed_arg(adjoint_seed, "adjoint_seed"));
       },

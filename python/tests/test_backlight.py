@@ -223,12 +223,30 @@ class FailingIndex:
      "'wall.albedo': expected shape (1024, 1024, 3) or a flat sequence, got (3, 1024, 1024)"),
     # A str path that is not UTF-8 (os.listdir's surrogate escapes) failed to cast (RuntimeError).
     (lambda s: backlight.load("/nonexistent/\udcff.json"), "/nonexistent/\\xff.json: file not found"),
+    # Messages of the passes named the CLI's flags (--eps, --adjoint-seed) instead of the keywords.
+    (lambda s: backlight.check(s, "light.radiance", d_image=np.ones((20, 24, 3), np.float32), resolution=RES,
+                               eps=1e-12),
+     "eps 1e-12: θ ± eps·v of 'light.radiance' rounds to θ in float for every element (use a larger eps)"),
+    (lambda s: backlight.check(s, "white.albedo", d_image=np.ones((20, 24, 3), np.float32), resolution=RES, eps=5),
+     "eps 5 is not smaller than the width of the valid range [0, 1] of 'white.albedo'"),
+    (lambda s: backlight.backward(s, np.ones((20, 24, 3), np.float32), resolution=RES, method="taped", seed=1,
+                                  adjoint_seed=2),
+     "method taped records one render and differentiates it: adjoint_seed must equal seed"),
+    # Something else than a scene gave pybind11's TypeError of five lines ("incompatible function
+    # arguments", the signature, the call).
+    (lambda s: backlight.render(None, spp=1), "scene: expected a backlight.Scene (backlight.load), got NoneType"),
+    (lambda s: backlight.backward("scene.json", np.ones((20, 24, 3), np.float32)),
+     "scene: expected a backlight.Scene (backlight.load), got str"),
+    (lambda s: backlight.grad(3, np.ones((20, 24, 3), np.float32)), "scene: expected a backlight.Scene"),
+    (lambda s: backlight.check([s], "light.radiance", d_image=np.ones((20, 24, 3), np.float32)),
+     "scene: expected a backlight.Scene"),
 ])
 def test_bad_arguments_raise_one_line_errors(scene, call, message):
     with pytest.raises(backlight.Error) as info:
         call(scene)
     text = str(info.value)
     assert message in text and "\n" not in text
+    assert "--" not in text  # Python's keyword names, not the CLI's flags
     assert isinstance(info.value, ValueError)
 
 
@@ -403,3 +421,15 @@ def test_check_that_compares_nothing_passes_nothing():
     rows = backlight.check(pose, "box.albedo", d_image=np.ones((16, 16, 3), np.float32), spp=1, resolution=(16, 16),
                            directions=2)
     assert all(not r["nothing_compared"] and r["ok"] for r in rows), rows
+
+
+def test_a_scene_whose_path_is_not_utf8_has_a_repr_and_a_path(tmp_path):
+    # A file name with the byte 0xff: repr(scene) and scene.path raised UnicodeDecodeError.
+    folder = os.path.join(os.fsencode(tmp_path), b"\xff")
+    os.symlink(os.path.dirname(os.path.abspath(CORNELL)), folder)
+    scene = backlight.load(os.path.join(folder, b"scene.json"))
+    text = repr(scene)
+    assert text.startswith("<backlight.Scene '") and "/\\xff/scene.json'" in text, text
+    # The path as os.fsdecode gives it: os.fsencode turns it back into the file system's bytes.
+    assert os.fsencode(scene.path) == os.path.join(folder, b"scene.json")
+    assert backlight.load(scene.path).path == scene.path

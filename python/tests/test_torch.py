@@ -154,6 +154,18 @@ def test_double_backward_raises():
         (g.sum() + t.sum()).backward()
 
 
+def test_set_with_a_tensor_that_requires_grad_says_what_to_do():
+    # The message was "expected a number, numbers (a list or an array) or an image file name, got
+    # Tensor" (NumPy's conversion refuses a tensor that requires grad).
+    with pytest.raises(backlight.Error) as info:
+        backlight.load(CORNELL, set={"light.radiance": torch.ones(3, requires_grad=True)})
+    text = str(info.value)
+    assert text.startswith("set: 'light.radiance': a tensor that requires grad") and "\n" not in text, text
+    assert ".detach()" in text and "backlight.torch.render" in text, text
+    scene = backlight.load(CORNELL, set={"light.radiance": torch.full((3,), 2.0, requires_grad=True).detach()})
+    np.testing.assert_array_equal(scene.params["light.radiance"], [2, 2, 2])
+
+
 def test_a_failed_pass_restores_the_values_it_wrote():
     # The tensors were written before the pass, which can still refuse (a camera the scene lacks, a
     # degenerate pose): the scene kept them, and a degenerate pose broke every later render.
