@@ -32,6 +32,7 @@
 #include "engine/integrators/gradient.h"
 #include "engine/integrators/render.h"
 #include "engine/scene/scene_load.h"
+#include "tbb/global_control.h"
 
 namespace py = pybind11;
 using namespace bl;
@@ -392,17 +393,42 @@ bool python_finalizing() {
 #endif
 }
 
+// backlight.set_threads: TBB's max_allowed_parallelism, as the CLI's --threads sets it. It is
+// process-wide (every pass of every thread), like torch.set_num_threads, and it is what the
+// gradient's per-thread buffers are sized by (GradientSink), so a gradient pass on n threads here
+// sums as the CLI's on n. Changed only with the GIL held; put back at exit (stop_passes_at_exit),
+// before TBB's own teardown.
+std::unique_ptr<tbb::global_control>& thread_limit() {
+  static auto* limit = new std::unique_ptr<tbb::global_control>;
+  return *limit;
+}
+constexpr int kMaxThreads = 1 << 16;
+
+void set_threads(const py::object& threads) {
+  if (threads.is_none()) {
+    thread_limit().reset();
+    return;
+  }
+  const int n = required_int_arg(threads, "threads", 1, kMaxThreads);
+  thread_limit() = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(n));
+}
+
+int get_threads() { return int(tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism)); }
+
 // Registered with Python's atexit (which runs before the interpreter starts to finalize): cancels
 // the passes still running in other threads (a daemon thread's render) and waits, without the
 // GIL, until they have stopped after their current tiles, so that none runs on while the process
 // tears down; later passes refuse to start.
 void stop_passes_at_exit() {
   RunningPasses& r = running_passes();
-  py::gil_scoped_release release;
-  std::unique_lock<std::mutex> lock(r.m);
-  r.exiting = true;
-  for (std::atomic<bool>* c : r.cancels) *c = true;
-  r.changed.wait_for(lock, std::chrono::seconds(30), [&] { return r.cancels.empty(); });
+  {
+    py::gil_scoped_release release;
+    std::unique_lock<std::mutex> lock(r.m);
+    r.exiting = true;
+    for (std::atomic<bool>* c : r.cancels) *c = true;
+    r.changed.wait_for(lock, std::chrono::seconds(30), [&] { return r.cancels.empty(); });
+  }
+  thread_limit().reset();
 }
 
 // Runs `pass(cancel)` (a render or gradient pass, `cancel` for its PassOptions) on a worker thread
@@ -727,6 +753,10 @@ PYBIND11_MODULE(_backlight, m) {
                                " parameters, " + std::to_string(s.scene->cameras.size()) + " camera(s)>");
       });
 
+  m.def("set_threads", &set_threads, py::arg("threads"),
+        "Limits every pass to at most `threads` worker threads (1..65536; None: every core, the default), as the "
+        "CLI's --threads. Process-wide, like torch.set_num_threads. Images are the same on any number of threads.");
+  m.def("get_threads", &get_threads, "The number of worker threads passes may use (set_threads; else every core).");
   m.def("load", &load_py, py::arg("path"), py::arg("set") = py::none(), py::kw_only(),
         py::arg("max_depth") = py::none(), py::arg("rr_depth") = py::none(),
         "Loads a JSON, glTF or Mitsuba 3 XML scene. set: {name: value} overrides, as the CLI's --set (a number, a list "

@@ -10,8 +10,9 @@
 
 backlight.torch wraps render and backward as a torch.autograd.Function. Errors a caller can
 cause raise backlight.Error (a ValueError) with the one-line message the CLI prints. One pass
-runs on a scene at a time; passes release the GIL and use every core (TBB).
+runs on a scene at a time; passes release the GIL and use every core (TBB), or as many as
+backlight.set_threads(n) allows (the CLI's --threads).
 """
-from ._backlight import Error, Scene, backward, check, grad, load, render
+from ._backlight import Error, Scene, backward, check, get_threads, grad, load, render, set_threads
 
-__all__ = ["Error", "Scene", "backward", "check", "grad", "load", "render"]
+__all__ = ["Error", "Scene", "backward", "check", "get_threads", "grad", "load", "render", "set_threads"]

@@ -3,6 +3,7 @@ finite-difference derivatives, the GIL, and every kind of bad argument."""
 import math
 import os
 import subprocess
+import sys
 import threading
 import time
 
@@ -240,6 +241,12 @@ class FailingIndex:
     (lambda s: backlight.grad(3, np.ones((20, 24, 3), np.float32)), "scene: expected a backlight.Scene"),
     (lambda s: backlight.check([s], "light.radiance", d_image=np.ones((20, 24, 3), np.float32)),
      "scene: expected a backlight.Scene"),
+    # Worker threads: a positive integer (None: every core).
+    (lambda s: backlight.set_threads(0), "threads: 0 is out of range (1..65536)"),
+    (lambda s: backlight.set_threads(-1), "threads: -1 is out of range (1..65536)"),
+    (lambda s: backlight.set_threads(10**9), "threads: 1000000000 is out of range (1..65536)"),
+    (lambda s: backlight.set_threads(2.0), "threads: expected an integer, got float 2.0"),
+    (lambda s: backlight.set_threads(True), "threads: expected an integer, got bool True"),
 ])
 def test_bad_arguments_raise_one_line_errors(scene, call, message):
     with pytest.raises(backlight.Error) as info:
@@ -433,3 +440,33 @@ def test_a_scene_whose_path_is_not_utf8_has_a_repr_and_a_path(tmp_path):
     # The path as os.fsdecode gives it: os.fsencode turns it back into the file system's bytes.
     assert os.fsencode(scene.path) == os.path.join(folder, b"scene.json")
     assert backlight.load(scene.path).path == scene.path
+
+
+def test_set_threads_limits_the_worker_threads(scene):
+    # Images are the same on any number of threads (tiles own their pixels and random numbers).
+    default = backlight.render(scene, spp=4, seed=3, resolution=RES)
+    d_image = weights(RES[1], RES[0])
+    gradient = backlight.backward(scene, d_image, spp=4, seed=3, resolution=RES, params=["light.radiance"])
+    every_core = backlight.get_threads()
+    assert every_core >= 1
+    backlight.set_threads(1)
+    try:
+        assert backlight.get_threads() == 1
+        one = backlight.render(scene, spp=4, seed=3, resolution=RES)
+        one_gradient = backlight.backward(scene, d_image, spp=4, seed=3, resolution=RES, params=["light.radiance"])
+    finally:
+        backlight.set_threads(None)
+    assert backlight.get_threads() == every_core
+    np.testing.assert_array_equal(one, default)
+    np.testing.assert_allclose(one_gradient["light.radiance"], gradient["light.radiance"], rtol=1e-6)
+    # The limit is the pool's: a process that set one thread starts no TBB worker.
+    script = ("import os, sys, backlight\n"
+              "if sys.argv[1] != '0': backlight.set_threads(int(sys.argv[1]))\n"
+              f"s = backlight.load({CORNELL!r})\n"
+              "backlight.render(s, spp=16, seed=1, resolution=(64, 64))\n"
+              "print(len(os.listdir('/proc/self/task')))\n")
+    counts = {n: int(subprocess.run([sys.executable, "-c", script, str(n)], capture_output=True, text=True,
+                                    check=True).stdout) for n in (0, 1)}
+    assert counts[1] == 1, counts
+    if (os.cpu_count() or 1) > 1:
+        assert counts[0] > 1, counts
