@@ -14,9 +14,11 @@ the adjoint pass uses the forward's seed, so the gradient is the exact derivativ
 forward returned (for parameters sampling does not depend on; roughness-like ones: in expectation); pass adjoint_seed to decorrelate them (unbiased for losses that are not linear
 in the image, as Mitsuba 3 recommends for optimization). The scene's other parameters must keep
 their values from forward to backward (backward checks their checksums and raises if one
-changed); double backward raises.
+changed). There are no second derivatives: a gradient taken with create_graph=True holds the
+first derivatives, and differentiating it raises RuntimeError.
 """
 import collections.abc
+import numbers
 import operator
 import threading
 import weakref
@@ -58,10 +60,11 @@ def _lock(scene):
 
 
 def _check(views, info, names, tensors):
-    """Checks every tensor (a floating-point torch tensor of its parameter's shape, finite, in the
-    parameter's valid range) before any is written: a failed call leaves the scene as it was.
-    views is scene.params, fetched once per call (it builds a dict over every parameter of the
-    scene: 12,000 of them cost ~6 ms a fetch), info the scene's param_info (_info)."""
+    """Checks every tensor (a floating-point torch tensor of its parameter's shape, or 0-d for a
+    one-element parameter, finite, in the parameter's valid range) before any is written: a failed
+    call leaves the scene as it was. Returns the values as float32 arrays of the parameters'
+    shapes. views is scene.params, fetched once per call (it builds a dict over every parameter of
+    the scene: 12,000 of them cost ~6 ms a fetch), info the scene's param_info (_info)."""
     values = []
     for name, tensor in zip(names, tensors):
         if name not in views:
@@ -70,8 +73,19 @@ def _check(views, info, names, tensors):
             raise _backlight.Error(f"{name}: expected a torch.Tensor, got {type(tensor).__name__}")
         if not tensor.is_floating_point():
             raise _backlight.Error(f"{name}: expected a floating-point tensor, got {tensor.dtype}")
+        # A meta tensor has a shape and no values: copying it out raised NotImplementedError ("Cannot
+        # copy out of meta tensor; no data!"), naming no parameter.
+        if tensor.is_meta:
+            raise _backlight.Error(f"{name}: a tensor on the 'meta' device has no values")
         detached = tensor.detach()
-        value = detached.to("cpu", torch.float32).contiguous().numpy()
+        try:
+            value = detached.to("cpu", torch.float32).contiguous().numpy()
+        except (RuntimeError, TypeError, NotImplementedError) as e:  # a sparse layout, a device torch cannot read
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise _backlight.Error(f"{name}: cannot read the tensor's values ({tensor.layout}, on {tensor.device}: "
+                                   f"{reason})") from None
+        if value.ndim == 0 and views[name].size == 1:  # a 0-d value for a one-element parameter
+            value = value.reshape(views[name].shape)
         if value.shape != views[name].shape:
             raise _backlight.Error(f"{name}: expected shape {tuple(views[name].shape)}, got {tuple(value.shape)}")
         if not np.all(np.isfinite(value)):
@@ -110,6 +124,25 @@ def _fingerprints(views, skip):
     return {name: zlib.adler32(view) for name, view in views.items() if name not in skip}
 
 
+_NO_SECOND = ("trying to differentiate twice: backlight.torch.render has no second derivatives (a gradient "
+              "taken with create_graph=True holds first derivatives only)")
+
+
+class _FirstOrderOnly(torch.autograd.Function):
+    """The gradients of _Render.backward under create_graph=True, attached to the tensors they are
+    the gradients of so that differentiating them raises. torch's once_differentiable attaches them
+    to grad_output only: when that had no graph (a loss linear in the image), the gradient came back
+    constant and a gradient penalty's second-order terms were dropped without a word."""
+
+    @staticmethod
+    def forward(ctx, count, *args):
+        return tuple(a.clone() for a in args[:count])
+
+    @staticmethod
+    def backward(ctx, *grads):
+        raise RuntimeError(_NO_SECOND)
+
+
 class _Render(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scene, names, options, *tensors):
@@ -132,9 +165,26 @@ class _Render(torch.autograd.Function):
         return out.to(reference.device) if reference is not None else out
 
     @staticmethod
-    @torch.autograd.function.once_differentiable  # double backward raises instead of dropping terms
     def backward(ctx, grad_output):
         tensors = ctx.saved_tensors
+        with torch.no_grad():
+            grads = _Render._gradients(ctx, tensors, grad_output)
+        if not torch.is_grad_enabled():  # no create_graph
+            return grads
+        # create_graph=True: the gradients are first derivatives; differentiating them raises.
+        anchors = [t for i, t in enumerate(tensors) if ctx.needs_input_grad[3 + i]]
+        anchors += [grad_output] if grad_output.requires_grad else []
+        given = [i for i, g in enumerate(grads) if g is not None]
+        if not given or not anchors:
+            return grads
+        attached = _FirstOrderOnly.apply(len(given), *[grads[i] for i in given], *anchors)
+        out = list(grads)
+        for i, g in zip(given, attached):
+            out[i] = g
+        return tuple(out)
+
+    @staticmethod
+    def _gradients(ctx, tensors, grad_output):
         views = ctx.scene.params
         values = _check(views, _info(ctx.scene), ctx.names, tensors)
         values = [ctx.copies.get(i, v) for i, v in enumerate(values)]
@@ -168,16 +218,21 @@ class _Render(torch.autograd.Function):
 
         with _lock(ctx.scene):
             grads = _run(views, ctx.names, values, backward_pass)
-        out = [torch.from_numpy(grads[n]).to(t.device, t.dtype) if ctx.needs_input_grad[3 + i] else None
-               for i, (n, t) in enumerate(zip(ctx.names, tensors))]
+        # In the shape given: a 0-d tensor for a one-element parameter gets a 0-d gradient.
+        out = [torch.from_numpy(grads[n]).reshape(t.shape).to(t.device, t.dtype) if ctx.needs_input_grad[3 + i]
+               else None for i, (n, t) in enumerate(zip(ctx.names, tensors))]
         return (None, None, None, *out)
 
 
 def render(scene, params, *, spp=None, seed=None, camera=0, resolution=None, method="prb", adjoint_seed=None):
-    """Renders scene with the given parameter tensors ({name: tensor shaped like scene.params[name]}) and
-    returns a float32 tensor (height, width, 3) that gradients flow through back to those tensors.
-    Parameters not given here must keep their values until backward (it raises otherwise); double
-    backward is not supported (it raises)."""
+    """Renders scene with the given parameter tensors ({name: tensor shaped like scene.params[name]};
+    for a one-element parameter also a 0-d tensor or a number) and returns a float32 tensor (height,
+    width, 3) that gradients flow through back to those tensors, each gradient in its tensor's
+    shape. With the same seed for both passes (adjoint_seed=None) the gradient is the exact
+    derivative of this image for emission, and for albedos and textures with Russian roulette off
+    (rr_depth=0); else exact in expectation. Parameters not given here must keep their values until
+    backward (it raises otherwise). No second derivatives: differentiating a gradient taken with
+    create_graph=True raises RuntimeError."""
     if not isinstance(scene, _backlight.Scene):
         raise _backlight.Error(f"scene: expected a backlight.Scene (backlight.load), got {type(scene).__name__}")
     if not isinstance(params, collections.abc.Mapping):
@@ -187,6 +242,10 @@ def render(scene, params, *, spp=None, seed=None, camera=0, resolution=None, met
     if not isinstance(method, str) or method not in _METHODS:
         raise _backlight.Error(f"unknown method {method!r} (prb, rb or taped)")
     names = list(params)
+    tensors = [params[n] for n in names]
+    # A number for a one-element parameter, as a 0-d tensor (it takes no gradient); bool is refused.
+    tensors = [torch.tensor(float(t)) if isinstance(t, numbers.Real) and not isinstance(t, (bool, np.bool_)) else t
+               for t in tensors]
     if adjoint_seed is not None:
         # NumPy and torch integers too, as the module's own seed arguments take them.
         try:
@@ -198,4 +257,4 @@ def render(scene, params, *, spp=None, seed=None, camera=0, resolution=None, met
         adjoint_seed = index
     options = {"spp": spp, "seed": seed, "camera": camera, "resolution": resolution, "method": method,
                "adjoint_seed": adjoint_seed}
-    return _Render.apply(scene, names, options, *[params[n] for n in names])
+    return _Render.apply(scene, names, options, *tensors)

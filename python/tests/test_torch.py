@@ -154,6 +154,35 @@ def test_double_backward_raises():
         (g.sum() + t.sum()).backward()
 
 
+def test_a_gradient_taken_with_create_graph_is_not_silently_constant():
+    # once_differentiable raises only when grad_output has a graph: for a loss linear in the image
+    # (grad_output constant) the gradient came back without one, so a gradient penalty lost its
+    # second-order terms silently and torch.autograd.grad(g.sum(), t) said "does not require grad".
+    scene = backlight.load(CORNELL)
+    t = torch.tensor(scene.params["white.albedo"], requires_grad=True)
+    image = backlight.torch.render(scene, {"white.albedo": t}, spp=1, seed=0, resolution=(8, 8))
+    g, = torch.autograd.grad(image.sum(), t, create_graph=True)
+    expected = backlight.backward(scene, np.ones((8, 8, 3), np.float32), spp=1, seed=0, resolution=(8, 8),
+                                  params=["white.albedo"])["white.albedo"]
+    np.testing.assert_array_equal(g.detach().numpy(), expected)  # first derivatives as without create_graph
+    with pytest.raises(RuntimeError, match="differentiate twice: backlight.torch.render has no second derivatives"):
+        torch.autograd.grad(g.sum(), t)
+    with pytest.raises(RuntimeError, match="no second derivatives"):
+        ((g ** 2).sum() + image.sum()).backward()
+
+
+def test_a_meta_tensor_is_refused_by_name():
+    # torch.empty(..., device="meta") has a shape and no values: NotImplementedError "Cannot copy out
+    # of meta tensor; no data!" came out of the conversion, naming no parameter.
+    scene = backlight.load(CORNELL)
+    with pytest.raises(backlight.Error) as info:
+        backlight.torch.render(scene, {"light.radiance": torch.empty(3, device="meta")}, spp=1, resolution=(8, 8))
+    assert str(info.value) == "light.radiance: a tensor on the 'meta' device has no values", str(info.value)
+    # A layout NumPy cannot read (sparse): the same kind of one-line error.
+    with pytest.raises(backlight.Error, match="^light.radiance: .*sparse"):
+        backlight.torch.render(scene, {"light.radiance": torch.ones(3).to_sparse()}, spp=1, resolution=(8, 8))
+
+
 def test_set_with_a_tensor_that_requires_grad_says_what_to_do():
     # The message was "expected a number, numbers (a list or an array) or an image file name, got
     # Tensor" (NumPy's conversion refuses a tensor that requires grad).
@@ -164,6 +193,28 @@ def test_set_with_a_tensor_that_requires_grad_says_what_to_do():
     assert ".detach()" in text and "backlight.torch.render" in text, text
     scene = backlight.load(CORNELL, set={"light.radiance": torch.full((3,), 2.0, requires_grad=True).detach()})
     np.testing.assert_array_equal(scene.params["light.radiance"], [2, 2, 2])
+
+
+def test_a_0d_value_for_a_one_element_parameter():
+    # plastic.roughness has shape (1,): torch.tensor(0.3) and 0.3 were refused ("expected shape (1,),
+    # got ()"). The gradient comes back in the shape given.
+    scene = backlight.load(CORNELL)
+    assert tuple(scene.params["plastic.roughness"].shape) == (1,)
+    one = torch.tensor([0.3], requires_grad=True)
+    reference = backlight.torch.render(scene, {"plastic.roughness": one}, spp=2, seed=4, resolution=(8, 8))
+    reference.sum().backward()
+    zero_d = torch.tensor(0.3, requires_grad=True)
+    image = backlight.torch.render(scene, {"plastic.roughness": zero_d}, spp=2, seed=4, resolution=(8, 8))
+    image.sum().backward()
+    assert torch.equal(image, reference)
+    assert zero_d.grad.shape == () and float(zero_d.grad) == float(one.grad[0]) != 0
+    number = backlight.torch.render(scene, {"plastic.roughness": 0.3, "light.radiance": torch.ones(3) * 17}, spp=2,
+                                    seed=4, resolution=(8, 8))
+    assert number.shape == (8, 8, 3)
+    with pytest.raises(backlight.Error, match=r"light.radiance: expected shape \(3,\), got \(\)"):
+        backlight.torch.render(scene, {"light.radiance": torch.tensor(1.0)}, spp=1, resolution=(8, 8))
+    with pytest.raises(backlight.Error, match="light.radiance: expected a torch.Tensor"):
+        backlight.torch.render(scene, {"light.radiance": True}, spp=1, resolution=(8, 8))
 
 
 def test_a_failed_pass_restores_the_values_it_wrote():
