@@ -786,9 +786,10 @@ PYBIND11_MODULE(_backlight, m) {
       py::arg("resolution") = py::none(), py::arg("params") = py::none(),
       "Gradient of sum(d_image * render(scene)) with respect to the parameters (all, or the names in params): "
       "{name: float32 array shaped like the parameter}. d_image: float32 (height, width, 3). With adjoint_seed "
-      "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns for parameters "
-      "sampling does not depend on (albedos, textures, emission); for roughness-like ones it is exact in expectation "
-      "(sampling is detached).");
+      "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns for emission, "
+      "and for albedos and textures with Russian roulette off (load(..., rr_depth=0): roulette's continuation "
+      "probability depends on them through the throughput); for albedos while roulette is on and for "
+      "roughness-like parameters it is exact in expectation (sampling is detached).");
   m.def(
       "grad",
       [](const py::object& scene, const py::handle& target, const py::object& loss, const py::object& method,

@@ -11,7 +11,10 @@ forward writes the tensors into the scene's parameters and renders; backward wri
 values again (the scene may have been rendered with others in between), transports grad_output
 back through the scene (path replay by default) and returns one gradient per tensor. By default
 the adjoint pass uses the forward's seed, so the gradient is the exact derivative of the image
-forward returned (for parameters sampling does not depend on; roughness-like ones: in expectation); pass adjoint_seed to decorrelate them (unbiased for losses that are not linear
+forward returned for emission, and for albedos and textures with Russian roulette off
+(backlight.load(..., rr_depth=0): its continuation probability depends on them through the
+throughput); for albedos while roulette is on and for roughness-like parameters it is exact in
+expectation. Pass adjoint_seed to decorrelate the passes (unbiased for losses that are not linear
 in the image, as Mitsuba 3 recommends for optimization). The scene's other parameters must keep
 their values from forward to backward (backward checks their checksums and raises if one
 changed). There are no second derivatives: a gradient taken with create_graph=True holds the

@@ -470,3 +470,10 @@ def test_set_threads_limits_the_worker_threads(scene):
     assert counts[1] == 1, counts
     if (os.cpu_count() or 1) > 1:
         assert counts[0] > 1, counts
+
+
+def test_backward_docstring_says_exact_only_with_russian_roulette_off():
+    # It called the same-seed gradient of albedos and textures exact; with Russian roulette on (rr_depth
+    # 5 by default) the continuation probability depends on them (README, "Same seed, exact derivative").
+    doc = " ".join(backlight.backward.__doc__.split())
+    assert "rr_depth=0" in doc and "albedos and textures" in doc, doc

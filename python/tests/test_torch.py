@@ -171,6 +171,13 @@ def test_a_gradient_taken_with_create_graph_is_not_silently_constant():
         ((g ** 2).sum() + image.sum()).backward()
 
 
+def test_docstrings_say_albedo_gradients_are_exact_only_with_russian_roulette_off():
+    # They called the same-seed gradient exact "for parameters sampling does not depend on", which
+    # albedos and textures are not while Russian roulette is on (its probability uses the throughput).
+    for doc in (backlight.torch.__doc__, backlight.torch.render.__doc__):
+        assert "rr_depth=0" in " ".join(doc.split()), doc
+
+
 def test_a_meta_tensor_is_refused_by_name():
     # torch.empty(..., device="meta") has a shape and no values: NotImplementedError "Cannot copy out
     # of meta tensor; no data!" came out of the conversion, naming no parameter.
