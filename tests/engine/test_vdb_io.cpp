@@ -52,6 +52,16 @@ void write_reference_file(const std::string& path, const std::string& name) {
       for (int z = 4; z <= 7; ++z) acc.setValueOn(openvdb::Coord(x, y, z), float(100 * x + 10 * y + z));
   openvdb::io::File(path).write({grid});
 }
+// A float grid with two active voxels, (0, 0, 0) = 1 and (far, far, far) = 2: its dense box has
+// (far + 1)³ voxels.
+openvdb::FloatGrid::Ptr two_voxels(const std::string& name, int far) {
+  openvdb::initialize();
+  auto grid = openvdb::FloatGrid::create(0.f);
+  grid->setName(name);
+  grid->tree().setValueOn(openvdb::Coord(0, 0, 0), 1.f);
+  grid->tree().setValueOn(openvdb::Coord(far, far, far), 2.f);
+  return grid;
+}
 }  // namespace
 
 TEST_CASE("OpenVDB round trip keeps values, dimensions and the box", "[volume][io][vdb]") {
@@ -106,14 +116,7 @@ TEST_CASE("bad OpenVDB files are one-line input errors", "[volume][io][vdb]") {
   CHECK(name.find("no float or vec3s grid named 'dens'") != std::string::npos);
   CHECK(name.find("smoke") != std::string::npos);  // lists what there is
   // Two far-apart active voxels: a dense box of 2001³ voxels, refused before allocating.
-  {
-    openvdb::initialize();
-    auto grid = openvdb::FloatGrid::create(0.f);
-    grid->setName("density");
-    grid->tree().setValueOn(openvdb::Coord(0, 0, 0), 1.f);
-    grid->tree().setValueOn(openvdb::Coord(2000, 2000, 2000), 1.f);
-    openvdb::io::File(dir + "/huge.vdb").write({grid});
-  }
+  openvdb::io::File(dir + "/huge.vdb").write({two_voxels("density", 2000)});
   CHECK(error_of([&] { read_vdb(dir + "/huge.vdb"); }).find("exceeds the limit") != std::string::npos);
   // NaN voxels.
   {
@@ -128,14 +131,6 @@ TEST_CASE("bad OpenVDB files are one-line input errors", "[volume][io][vdb]") {
 // Grid choice without a name, and transforms a box cannot express.
 TEST_CASE("OpenVDB grid choice and unsupported transforms", "[volume][io][vdb]") {
   const std::string dir = test::temp_dir("vdbchoice");
-  openvdb::initialize();
-  auto two_voxels = [](const std::string& name, int far) {
-    auto grid = openvdb::FloatGrid::create(0.f);
-    grid->setName(name);
-    grid->tree().setValueOn(openvdb::Coord(0, 0, 0), 1.f);
-    grid->tree().setValueOn(openvdb::Coord(far, far, far), 2.f);
-    return grid;
-  };
   openvdb::io::File(dir + "/two.vdb").write({two_voxels("heat", 1), two_voxels("temperature", 1)});
   const std::string several = error_of([&] { read_vdb(dir + "/two.vdb"); });
   CHECK(several.find("several grids") != std::string::npos);
@@ -208,15 +203,8 @@ TEST_CASE("OpenVDB files are read in a helper process under limits", "[volume][i
   // read past the end without a word), which the reader now says before inflating anything.
   const std::string cut = error_of([&] { read_vdb(bad + "vdb_fuzz_grid_1p5GB.vdb", "", {512, 60}); });
   CHECK(cut.rfind(bad + "vdb_fuzz_grid_1p5GB.vdb: the file is cut short", 0) == 0);
-  // A valid file that inflates: two active voxels 730 apart, a dense box of 730³ floats (1.56 GB).
-  {
-    openvdb::initialize();
-    auto grid = openvdb::FloatGrid::create(0.f);
-    grid->setName("density");
-    grid->tree().setValueOn(openvdb::Coord(0, 0, 0), 1.f);
-    grid->tree().setValueOn(openvdb::Coord(729, 729, 729), 1.f);
-    openvdb::io::File(dir + "/inflates.vdb").write({grid});
-  }
+  // A valid file that inflates: two active voxels, a dense box of 730³ floats (1.56 GB).
+  openvdb::io::File(dir + "/inflates.vdb").write({two_voxels("density", 729)});
   const std::string slow = error_of([&] { read_vdb(dir + "/inflates.vdb", "", {4096, 0.05}); });
   CHECK(slow.find("took longer than") != std::string::npos);
   const std::string big = error_of([&] { read_vdb(dir + "/inflates.vdb", "", {512, 60}); });
