@@ -857,7 +857,13 @@ class Job {
       }
       Image t = render(*reference_, {cameras_[v], c_.reference_spp, 0xabcdefull + v, !quiet_});
       if (root_) {
+        // The old key goes first: a run killed between the two renames left a new image beside
+        // the old key, and the next run of the old config took it as its target (helper-45).
+        std::error_code ec;
+        fs::remove(key_file, ec);
+        if (ec) throw file_error(key_file, "cannot remove the stale cache key (" + ec.message() + ")");
         write_image(cached, t);
+        crash_point("target-written");
         write_text_atomic(key_file, key);
       }
       targets_.push_back(std::move(t));
@@ -1428,7 +1434,8 @@ class Job {
   }
 
   // Fault injection for the crash-safety test: BACKLIGHT_CRASH_AT=<name> kills the process (as
-  // kill -9 would, with no cleanup) when it reaches the named point of the checkpoint swap.
+  // kill -9 would, with no cleanup) when it reaches the named point of the checkpoint swap (or,
+  // "target-written", between a cached target and its key).
   static void crash_point(const char* name) {
     static const char* at = std::getenv("BACKLIGHT_CRASH_AT");
     if (at && std::strcmp(at, name) == 0) std::_Exit(137);

@@ -78,4 +78,16 @@ rows=$(($(wc -l < out/loss.csv) - 1))
 stale=$(find out -name '.*.tmp*')
 [ -z "$stale" ] || fail "temporaries left behind: $stale"
 [ ! -e out/checkpoint.tmp ] && [ ! -e out/checkpoint.old ] || fail "checkpoint.tmp/.old left behind: $(ls out)"
-echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result"
+# 3. The target cache: a run killed between writing a target and its key left the new image beside
+# the old key, and the next run of the old config took the other reference's render as its target
+# (helper-45). The old key is removed before the image is replaced.
+sed 's/"spp": 8}}/"spp": 9}}/' ref.json > ref9.json
+grep -q '"spp": 9}}' ref9.json || fail "ref9.json: the reference spp was not changed"
+cp ref/targets/top.exr top8.exr
+env BACKLIGHT_CRASH_AT=target-written "$bin" optimize ref9.json --threads 1 --quiet 2>> out.log
+code=$?
+[ $code -eq 137 ] || fail "crash at target-written: exit $code, expected the injected 137"
+cmp -s ref/targets/top.exr top8.exr && fail "the spp-9 reference did not replace the cached target"
+"$bin" optimize ref.json --threads 1 --quiet 2>> out.log || fail "the spp-8 run after the crash failed"
+cmp -s ref/targets/top.exr top8.exr || fail "the spp-8 run used the spp-9 target left by the crash"
+echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result; a crash inside the target cache"
