@@ -1,7 +1,9 @@
 // libbacklight_openvdb.so: writing .vdb files with OpenVDB (plugin_api.h), opened by write_vdb
 // (engine/scene/openvdb_io.cpp) on the first grid written, so that other runs never load OpenVDB.
+#include <openvdb/io/Stream.h>
 #include <openvdb/openvdb.h>
 
+#include <fstream>
 #include <type_traits>
 
 #include "engine/plugins/plugin_api.h"
@@ -46,6 +48,14 @@ bool write_vdb(const std::string& path, const bl::VolumeGrid& g, const std::stri
     file.setCompression(openvdb::io::COMPRESS_ZIP | openvdb::io::COMPRESS_ACTIVE_MASK);
     file.write({grid});
     file.close();
+    // OpenVDB does not check its writes: a file cut short by a full disk or a file size limit
+    // was renamed into place as if complete (helper-45). What was written must read back whole.
+    std::ifstream in(path, std::ios::binary);
+    openvdb::io::Stream back(in, /*delayLoad=*/false);
+    if (!in || in.fail() || back.getGrids()->size() != 1) {
+      *error = "write failed (the file written does not read back whole: a full disk or a file size limit?)";
+      return false;
+    }
     return true;
   } catch (const std::exception& e) {
     *error = std::string("cannot write OpenVDB file (") + e.what() + ")";

@@ -1074,6 +1074,16 @@ PY
   expect_error_now vdb_grid_missing "dumped.vdb" "density" -- \
     render "$(vv vdbgrid 's["media"]["smoke"]["density"] = {"type": "vdb", "file": "dumped.vdb", "grid": "density"}')" \
     -o o.exr --spp 1 -q
+  # A .vdb write cut short (a full disk; here a file size limit) was renamed into place as if
+  # complete, since OpenVDB does not check its writes: now one line, exit 2, the old file kept.
+  cp gdump/smoke.density.vdb vol/good_dump.vdb
+  local rc=0
+  (trap '' XFSZ; ulimit -f 200; "$bin" params "$vol" --dump gdump -q --set smoke.scale=2 >/dev/null 2>err.vdbfull) ||
+    rc=$?
+  [ "$rc" -eq 2 ] || fail "vdb_write_cut_short: exit $rc, expected 2: $(cat err.vdbfull)"
+  grep -qF "smoke.density.vdb: write failed" err.vdbfull || fail "vdb_write_cut_short: $(cat err.vdbfull)"
+  cmp -s gdump/smoke.density.vdb vol/good_dump.vdb || fail "vdb_write_cut_short: the .vdb was replaced"
+  [ -z "$(find gdump -name '.*.tmp*')" ] || fail "vdb_write_cut_short: temporaries left: $(find gdump -name '.*.tmp*')"
   # A file cut short by up to 7 bytes loaded (the last voxel's float partly read, garbage where it
   # was not: OpenVDB does not check its reads); each cut is now a one-line error.
   local cut size
