@@ -149,13 +149,9 @@ int cmd_render(SceneFlags& f, const std::string& output) {
     // The folder must exist (a mistyped one is an error, not a new folder); temporaries of this
     // output name that a killed render left there (of a process that no longer runs) are removed.
     const std::filesystem::path folder = std::filesystem::path(output).parent_path();
-    std::string stem = std::filesystem::path(output).stem().string(), escaped;
-    for (char ch : stem) {
-      if (std::strchr(R"(\^$.|?*+()[]{})", ch)) escaped += '\\';
-      escaped += ch;
-    }
     check_output_format(output);
-    remove_stale_temporaries(folder.empty() ? "." : folder.string(), false, escaped);
+    remove_stale_temporaries(folder.empty() ? "." : folder.string(), false,
+                             regex_escaped(std::filesystem::path(output).stem().string()));
   }
   auto scene = f.load();
   PassStats stats;

@@ -628,6 +628,11 @@ void write_grid_files(const Scene& scene, const Param& p, const std::vector<floa
 void dump_parameter_values(const Scene& scene, const std::string& dir) {
   const ParamStore& params = scene.params;
   ensure_output_folder(dir);
+  // Temporaries of dumps killed before their rename (of processes no longer running) piled up,
+  // 8 MB per grid (helper-45): those named after this scene's parameters or params.json go.
+  std::string stems = "params";
+  for (const auto& p : params.all()) stems += '|' + regex_escaped(p.name);
+  remove_stale_temporaries(dir, false, stems);
   nlohmann::json small = nlohmann::json::object();
   for (const auto& p : params.all()) {
     if (p.shape.size() == 4) {

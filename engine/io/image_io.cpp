@@ -832,6 +832,15 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size) 
   commit(tmp, path);
 }
 
+std::string regex_escaped(const std::string& text) {
+  std::string out;
+  for (char ch : text) {
+    if (std::strchr(R"(\^$.|?*+()[]{})", ch)) out += '\\';
+    out += ch;
+  }
+  return out;
+}
+
 int remove_stale_temporaries(const std::string& dir, bool recursive, const std::string& stem) {
   // temp_name's pattern: "." stem ".tmp" PID extension. Only files of processes that no longer
   // run go: this one, or another writing into the same folder, may be writing its own.

@@ -54,6 +54,8 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size);
 // rename: names ".<stem>.tmp<pid>.<ext>" whose stem matches `stem` (a regular expression) and
 // whose process no longer runs. Returns how many.
 int remove_stale_temporaries(const std::string& dir, bool recursive = true, const std::string& stem = ".*");
+// `text` as a regular expression matching exactly it (a file name's stem for the above).
+std::string regex_escaped(const std::string& text);
 
 float srgb_to_linear(float v);
 float linear_to_srgb(float v);

@@ -1084,6 +1084,15 @@ PY
   grep -qF "smoke.density.vdb: write failed" err.vdbfull || fail "vdb_write_cut_short: $(cat err.vdbfull)"
   cmp -s gdump/smoke.density.vdb vol/good_dump.vdb || fail "vdb_write_cut_short: the .vdb was replaced"
   [ -z "$(find gdump -name '.*.tmp*')" ] || fail "vdb_write_cut_short: temporaries left: $(find gdump -name '.*.tmp*')"
+  # Temporaries of dumps killed before their rename piled up (8 MB per grid): a dump removes those of
+  # processes no longer running that are named after the scene's parameters or params.json.
+  : > gdump/.smoke.density.tmp999999999.vol
+  : > gdump/.params.tmp999999998.json
+  : > gdump/.unrelated.tmp999999997.txt
+  expect_ok params_dump_stale params "$vol" --dump gdump -q || return
+  [ ! -e gdump/.smoke.density.tmp999999999.vol ] && [ ! -e gdump/.params.tmp999999998.json ] ||
+    fail "params --dump left stale temporaries: $(ls -a gdump | grep tmp)"
+  [ -e gdump/.unrelated.tmp999999997.txt ] || fail "params --dump removed a temporary not of its own names"
   # A file cut short by up to 7 bytes loaded (the last voxel's float partly read, garbage where it
   # was not: OpenVDB does not check its reads); each cut is now a one-line error.
   local cut size
