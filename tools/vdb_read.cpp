@@ -3,7 +3,10 @@
 // MEMORY_MB, writes the dense grid as OUT.vol, and exits 0; on a bad file it prints the one-line
 // error "<file>: <problem>" on stderr and exits 2. Not meant to be run by hand.
 #include <malloc.h>
+#include <signal.h>
+#include <sys/prctl.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <cstdio>
@@ -47,6 +50,12 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "usage: backlight-vdb-read FILE GRID OUT.vol MEMORY_MB (used by backlight)\n");
     return 64;
   }
+  // Dies with backlight: a reader whose parent was killed parsed on and wrote into a folder
+  // nobody would remove. The parent's pid in the environment closes the race of a parent gone
+  // before the request.
+  prctl(PR_SET_PDEATHSIG, SIGKILL);
+  if (const char* parent = std::getenv("BACKLIGHT_VDB_PARENT"); parent && std::atol(parent) != long(getppid()))
+    return 3;
   const std::string path = argv[1];
   char* end = nullptr;
   const unsigned long long memory_mb = std::strtoull(argv[4], &end, 10);

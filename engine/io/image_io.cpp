@@ -832,6 +832,22 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size) 
   commit(tmp, path);
 }
 
+bool process_gone(const std::string& digits) {
+  if (digits.empty() || digits.find_first_not_of("0123456789") != std::string::npos) return false;
+  if (digits.size() > 9) return true;  // beyond any pid
+  const pid_t pid = pid_t(std::stol(digits));
+  if (pid <= 0) return false;
+  if (kill(pid, 0) != 0) return errno == ESRCH;
+  // A zombie writes nothing more: a plot child killed with its parent (PR_SET_PDEATHSIG) stays
+  // one until someone reaps it, for ever under a container's init that does not (its
+  // temporary was left behind: test_optimize_crash failed now and then).
+  std::ifstream stat("/proc/" + digits + "/stat");
+  std::string line;
+  if (!std::getline(stat, line)) return false;
+  const size_t close = line.rfind(')');  // "pid (comm) state ...": comm may hold spaces
+  return close != std::string::npos && close + 2 < line.size() && (line[close + 2] == 'Z' || line[close + 2] == 'X');
+}
+
 std::string regex_escaped(const std::string& text) {
   std::string out;
   for (char ch : text) {
@@ -845,20 +861,7 @@ int remove_stale_temporaries(const std::string& dir, bool recursive, const std::
   // temp_name's pattern: "." stem ".tmp" PID extension. Only files of processes that no longer
   // run go: this one, or another writing into the same folder, may be writing its own.
   const std::regex pattern("^\\.(?:" + stem + ")\\.tmp([0-9]+)(\\.[A-Za-z0-9]+)?$");
-  auto dead = [](const std::string& digits) {
-    if (digits.size() > 9) return true;  // beyond any pid
-    const pid_t pid = pid_t(std::stol(digits));
-    if (pid <= 0) return false;
-    if (kill(pid, 0) != 0) return errno == ESRCH;
-    // A zombie writes nothing more: a plot child killed with its parent (PR_SET_PDEATHSIG) stays
-    // one until someone reaps it, for ever under a container's init that does not (its
-    // temporary was left behind: test_optimize_crash failed now and then).
-    std::ifstream stat("/proc/" + digits + "/stat");
-    std::string line;
-    if (!std::getline(stat, line)) return false;
-    const size_t close = line.rfind(')');  // "pid (comm) state ...": comm may hold spaces
-    return close != std::string::npos && close + 2 < line.size() && (line[close + 2] == 'Z' || line[close + 2] == 'X');
-  };
+  const auto dead = process_gone;
   int removed = 0;
   std::error_code ec;
   auto consider = [&](const fs::directory_entry& entry) {

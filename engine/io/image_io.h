@@ -54,6 +54,9 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size);
 // rename: names ".<stem>.tmp<pid>.<ext>" whose stem matches `stem` (a regular expression) and
 // whose process no longer runs. Returns how many.
 int remove_stale_temporaries(const std::string& dir, bool recursive = true, const std::string& stem = ".*");
+// Whether process `pid` (decimal digits) is gone: no such process, or a zombie that will write
+// nothing more. Used to remove what killed processes left behind.
+bool process_gone(const std::string& pid_digits);
 // `text` as a regular expression matching exactly it (a file name's stem for the above).
 std::string regex_escaped(const std::string& text);
 

@@ -18,6 +18,7 @@
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
+#include "engine/io/image_io.h"
 #include "engine/plugins/plugin.h"
 #include "engine/scene/openvdb_reader.h"
 
@@ -45,16 +46,33 @@ std::string reader_executable() {
   return "";
 }
 
+// Named backlight-vdb-<pid>-XXXXXX: a process killed while its reader ran never reaches the
+// destructor, and its folder (holding up to the whole dense grid) stayed for ever (helper-45: 21
+// MB after five interrupted renders). Each new one first removes those of processes gone.
 struct PrivateDir {
   std::string path;
   PrivateDir() {  // in $TMPDIR, else /tmp; path stays empty when neither works
     const char* base = std::getenv("TMPDIR");
     for (const std::string& root : {std::string(base && *base ? base : "/tmp"), std::string("/tmp")}) {
-      std::string pattern = root + "/backlight-vdb-XXXXXX";
+      remove_abandoned(root);
+      std::string pattern = root + "/backlight-vdb-" + std::to_string(::getpid()) + "-XXXXXX";
       if (::mkdtemp(pattern.data()) != nullptr) {
         path = pattern;
         return;
       }
+    }
+  }
+  static void remove_abandoned(const std::string& root) {
+    std::error_code ec;
+    for (fs::directory_iterator it(root, ec), end; !ec && it != end; it.increment(ec)) {
+      const std::string name = it->path().filename().string();
+      const std::string prefix = "backlight-vdb-";
+      const size_t dash = name.find('-', prefix.size());
+      std::error_code e;
+      if (name.rfind(prefix, 0) != 0 || dash == std::string::npos || name.size() != dash + 7 || !it->is_directory(e) ||
+          !process_gone(name.substr(prefix.size(), dash - prefix.size())))
+        continue;
+      fs::remove_all(it->path(), e);
     }
   }
   ~PrivateDir() {
@@ -101,7 +119,12 @@ VolumeGrid read_vdb(const std::string& path, const std::string& grid_name, const
     std::vector<std::string> env_strings;
     std::string asan = std::string("ASAN_OPTIONS=") + (std::getenv("ASAN_OPTIONS") ? std::getenv("ASAN_OPTIONS") : "");
     for (char** e = environ; *e; ++e)
-      if (!kAddressSanitizer || std::strncmp(*e, "ASAN_OPTIONS=", 13) != 0) env_strings.emplace_back(*e);
+      if ((!kAddressSanitizer || std::strncmp(*e, "ASAN_OPTIONS=", 13) != 0) &&
+          std::strncmp(*e, "BACKLIGHT_VDB_PARENT=", 21) != 0)
+        env_strings.emplace_back(*e);
+    // The reader stops when this process dies (PR_SET_PDEATHSIG), checking that it was not gone
+    // before it asked: a reader of a killed process parsed on and wrote into its folder.
+    env_strings.push_back("BACKLIGHT_VDB_PARENT=" + std::to_string(::getpid()));
     if (kAddressSanitizer)
       env_strings.push_back(asan + (asan.back() == '=' ? "" : ":") + "hard_rss_limit_mb=" + memory +
                             ":max_allocation_size_mb=" + memory);

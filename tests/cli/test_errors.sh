@@ -1093,6 +1093,22 @@ PY
   [ ! -e gdump/.smoke.density.tmp999999999.vol ] && [ ! -e gdump/.params.tmp999999998.json ] ||
     fail "params --dump left stale temporaries: $(ls -a gdump | grep tmp)"
   [ -e gdump/.unrelated.tmp999999997.txt ] || fail "params --dump removed a temporary not of its own names"
+  # A run killed while its OpenVDB reader ran left the reader's folder in $TMPDIR for ever (up to the
+  # dense grid): folders are named backlight-vdb-<pid>-XXXXXX, and those of processes gone are
+  # removed by the next reader's run; a living process's folder stays.
+  mkdir -p "tmpvdb/backlight-vdb-999999999-AbC123" "tmpvdb/backlight-vdb-$$-XyZ789"
+  : > "tmpvdb/backlight-vdb-999999999-AbC123/grid.vol"
+  TMPDIR="$tmp/tmpvdb" expect_ok vdb_abandoned_folder render "$vol" --resolution 8x8 --spp 1 -q -o o_ab.exr \
+    --set smoke.density=gdump/smoke.density.vdb || return
+  [ ! -e "tmpvdb/backlight-vdb-999999999-AbC123" ] || fail "vdb_abandoned_folder: a dead process's folder stayed"
+  [ -d "tmpvdb/backlight-vdb-$$-XyZ789" ] || fail "vdb_abandoned_folder: a living process's folder was removed"
+  [ "$(ls tmpvdb | wc -l)" -eq 1 ] || fail "vdb_abandoned_folder: the run left its folder: $(ls tmpvdb)"
+  # The reader stops at once when the process that started it is not its parent (gone before the
+  # reader asked to die with it).
+  rc=0
+  BACKLIGHT_VDB_PARENT=1 "$(dirname "$bin")/backlight-vdb-read" gdump/smoke.density.vdb "" orphan.vol 512 \
+    2>/dev/null || rc=$?
+  [ "$rc" -eq 3 ] && [ ! -e orphan.vol ] || fail "vdb reader without its parent: exit $rc, expected 3 and no output"
   # A file cut short by up to 7 bytes loaded (the last voxel's float partly read, garbage where it
   # was not: OpenVDB does not check its reads); each cut is now a one-line error.
   local cut size
