@@ -1565,7 +1565,11 @@ class Job {
       scene_->prepare_sampling();
       return next_iteration;
     } catch (const json::exception& e) {
-      throw file_error(dir + "/state.json", std::string("checkpoint does not match this config (") + e.what() + ")");
+      // Without nlohmann's "[json.exception.out_of_range.403] " prefix: "key 'adam_m' not found".
+      std::string what = e.what();
+      if (const size_t id = what.find("] "); what.rfind("[json.exception.", 0) == 0 && id != std::string::npos)
+        what.erase(0, id + 2);
+      throw file_error(dir + "/state.json", "checkpoint does not match this config (" + what + ")");
     }
   }
 

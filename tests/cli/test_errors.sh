@@ -767,6 +767,8 @@ PY
   resume_error adam_t_huge 's["parameters"]["wall.albedo"]["adam_t"] = 10**30' "state.json" "adam_t"
   resume_error seconds_negative 's["seconds"] = -100' "state.json" "seconds"
   resume_error log_row 's["log"][0] = [1, 2]' "state.json" "log"
+  # A key missing: the message had nlohmann's "[json.exception.out_of_range.403] " in front of the key.
+  resume_error seconds_missing 'del s["seconds"]' "state.json" "checkpoint does not match this config (key 'seconds' not found)"
   resume_error value_nan 'put("wall.albedo.value", [float("nan")] * size("wall.albedo.value"))' \
     "wall.albedo.value" "wall.albedo" "re:NaN|finite"
   resume_error value_range 'put("wall.albedo.value", [-3.0] * size("wall.albedo.value"))' \
