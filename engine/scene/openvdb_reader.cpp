@@ -51,8 +51,10 @@ VolumeGrid read_unguarded(const std::string& path, const std::string& grid_name,
   limits::require_at_most(path, "file size", uint64_t(fs::file_size(path)), limits::kFileBytes);
   openvdb_initialize_once();
   // Read through a stream of our own, not openvdb::io::File: OpenVDB does not check its reads,
-  // and a file cut short by up to 5 bytes loaded with garbage in its last voxel. The stream's
-  // state after the whole file is read tells (no delayed loading: the file may change under us).
+  // and the bundled smoke grid cut short by 1 to 7 bytes loaded with garbage in its last voxel.
+  // The stream's state after the whole file is read tells (no delayed loading: the file may
+  // change under us). Every grid of the file is read, not only the chosen one: the reader's
+  // memory limit covers them all.
   std::ifstream in(path, std::ios::binary);
   if (!in) throw file_error(path, "cannot open the file");
   openvdb::io::Stream stream(in, /*delayLoad=*/false);
