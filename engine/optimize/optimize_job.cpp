@@ -681,8 +681,18 @@ class Job {
     read_target_inputs();
     if (root_) {
       ensure_output_folder(c_.output);
-      // A run killed while writing leaves its temporaries; this run owns the folder, so clear them.
+      // A run killed while writing leaves its temporaries; this run owns the folder, so clear them,
+      // and the checkpoint a killed run was writing (it stayed until the next checkpoint). A fresh
+      // start removes the summary of a finished run first: killed early, it left a summary of 40
+      // iterations beside its own checkpoint of 5 (helper-45); summary.json says a run finished.
       remove_stale_temporaries(c_.output);
+      remove_checkpoint_dir(out("checkpoint.tmp"));
+      if (!resume) {
+        std::error_code ec;
+        fs::remove(out("summary.json"), ec);
+        if (ec)
+          throw file_error(out("summary.json"), "cannot remove the previous run's summary (" + ec.message() + ")");
+      }
     }
     prepare_targets();
     prepare_image_stages();

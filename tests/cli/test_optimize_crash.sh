@@ -90,4 +90,15 @@ code=$?
 cmp -s ref/targets/top.exr top8.exr && fail "the spp-9 reference did not replace the cached target"
 "$bin" optimize ref.json --threads 1 --quiet 2>> out.log || fail "the spp-8 run after the crash failed"
 cmp -s ref/targets/top.exr top8.exr || fail "the spp-8 run used the spp-9 target left by the crash"
-echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result; a crash inside the target cache"
+# 4. A fresh start over a finished run's folder, killed at its first checkpoint: the old summary.json
+# (a finished run of 16 iterations) stayed beside the new checkpoint, and a checkpoint.tmp/ of a
+# killed writer stayed until the next checkpoint. Both go when a run starts.
+[ -f ref/summary.json ] || fail "the finished run has no summary.json"
+mkdir -p ref/checkpoint.tmp && : > ref/checkpoint.tmp/left.by.a.killed.writer
+env BACKLIGHT_CRASH_AT=checkpoint-written "$bin" optimize ref.json --threads 1 --quiet 2>> out.log
+code=$?
+[ $code -eq 137 ] || fail "fresh start crashed at checkpoint-written: exit $code, expected the injected 137"
+[ ! -e ref/summary.json ] || fail "a fresh start killed early left the previous run's summary.json"
+[ ! -e ref/checkpoint.tmp/left.by.a.killed.writer ] || fail "a killed writer's checkpoint.tmp/ stayed"
+echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result; a crash inside the target cache;" \
+  "a fresh start over a finished folder"
