@@ -149,7 +149,7 @@ int cmd_render(SceneFlags& f, const std::string& output) {
     // The folder must exist (a mistyped one is an error, not a new folder); temporaries of this
     // output name that a killed render left there (of a process that no longer runs) are removed.
     const std::filesystem::path folder = std::filesystem::path(output).parent_path();
-    check_output_format(output);
+    check_output_creatable(output);
     remove_stale_temporaries(folder.empty() ? "." : folder.string(), false,
                              regex_escaped(std::filesystem::path(output).stem().string()));
   }

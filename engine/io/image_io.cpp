@@ -761,9 +761,17 @@ void check_output_format(const std::string& path) {
   }
   // Found now, not by the rename after the whole render.
   if (fs::is_directory(path, ec)) throw file_error(path, "is a folder (name an image file)");
-  // So is a folder we may not create files in (the write goes to a temporary file beside the
-  // output, then renamed): a read-only mount or /proc failed only after the work, naming the
-  // temporary file. A probe of that file's name, created and removed at once.
+  // JPEG and HDR are written by the oiio plugin: a missing plugin fails now, not after the work.
+  if (ext == ".hdr" || ext == ".jpg" || ext == ".jpeg")
+    (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");
+}
+
+void check_output_creatable(const std::string& path) {
+  check_output_format(path);
+  // A folder we may not create files in (the write goes to a temporary file beside the output,
+  // then renamed): a read-only mount or /proc failed only after the work, naming the temporary
+  // file. A probe of that file's name, created and removed at once (before the work only:
+  // write_image finds a failing write by itself).
   const std::string probe = temp_name(path);
   const int fd = ::open(probe.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
   if (fd < 0 && errno != EEXIST)
@@ -772,9 +780,6 @@ void check_output_format(const std::string& path) {
     ::close(fd);
     ::unlink(probe.c_str());
   }
-  // JPEG and HDR are written by the oiio plugin: a missing plugin fails now, not after the work.
-  if (ext == ".hdr" || ext == ".jpg" || ext == ".jpeg")
-    (void)plugin::oiio(path, ext == ".hdr" ? "writing Radiance HDR" : "writing JPEG");
 }
 
 void write_image(const std::string& path, const Image& image, bool encode_srgb) {

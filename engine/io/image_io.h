@@ -41,6 +41,8 @@ Image read_image_unguarded(const std::string& path, bool decode_srgb);  // read_
 void check_encoded_image(const std::string& where, const unsigned char* bytes, size_t size);
 // Throws InputError unless the extension is one write_image supports (check before long work).
 void check_output_format(const std::string& path);
+// check_output_format, and that the output's folder takes new files (before long work).
+void check_output_creatable(const std::string& path);
 // Writes by extension: .exr/.pfm/.hdr as float, .png/.jpg as 8-bit clamped to [0, 1], sRGB-encoded
 // when `encode_srgb` (a linear texture's own values otherwise, so that reading the file back in
 // its colour space gives them again). Atomic.
