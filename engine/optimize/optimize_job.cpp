@@ -24,6 +24,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <regex>
 #include <set>
 #include <sstream>
 #include <string_view>
@@ -679,20 +680,15 @@ class Job {
     check_downsampling();
     if (!resume) dist::agreed_step([&] { apply_initial_values(); });  // a bad "init" fails alike on every rank
     read_target_inputs();
+    // Before anything is written into the folder (targets/ says whether a run started in it).
+    if (resume) dist::agreed_step([&] { resume_dir_ = checkpoint_to_resume(); });
     if (root_) {
       ensure_output_folder(c_.output);
       // A run killed while writing leaves its temporaries; this run owns the folder, so clear them,
-      // and the checkpoint a killed run was writing (it stayed until the next checkpoint). A fresh
-      // start removes the summary of a finished run first: killed early, it left a summary of 40
-      // iterations beside its own checkpoint of 5 (helper-45); summary.json says a run finished.
+      // and the checkpoint a killed run was writing (it stayed until the next checkpoint).
       remove_stale_temporaries(c_.output);
       remove_checkpoint_dir(out("checkpoint.tmp"));
-      if (!resume) {
-        std::error_code ec;
-        fs::remove(out("summary.json"), ec);
-        if (ec)
-          throw file_error(out("summary.json"), "cannot remove the previous run's summary (" + ec.message() + ")");
-      }
+      if (!resume) remove_previous_outputs();
     }
     prepare_targets();
     prepare_image_stages();
@@ -704,6 +700,10 @@ class Job {
     if (resume) {
       // Every rank reads it; a bad checkpoint is reported once, not by each rank.
       dist::agreed_step([&] { start = load_checkpoint(); });
+      // The logs as the checkpoint has them: a killed run left rows after it, and a fresh start
+      // killed in its clean-up none (a finished run's checkpoint then runs no iteration to write them).
+      write_log();
+      if (!validation_.empty()) write_validation();
     }
     snapshot_initial();
     return optimize(start);
@@ -712,6 +712,7 @@ class Job {
  private:
   Config c_;
   bool quiet_;
+  std::string resume_dir_;  // --resume: the checkpoint folder (checkpoint_to_resume)
   const bool root_ = dist::is_root();
   std::unique_ptr<Scene> scene_;
   std::vector<int> cameras_;
@@ -836,6 +837,61 @@ class Job {
         for (auto& rc : reference_->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
       reference_content_ = reference_->content_hash();
     }
+  }
+
+  // The checkpoint --resume continues from: checkpoint/, or checkpoint.old/ when a swap was cut short.
+  std::string checkpoint_to_resume() const {
+    std::string dir = out("checkpoint");
+    if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json"))
+      dir = out("checkpoint.old");
+    if (fs::exists(dir + "/state.json")) return dir;
+    // targets/ is made by every run before its first checkpoint, and a start without --resume
+    // removes the previous run's checkpoint with its other outputs: a run started here and was
+    // stopped before it wrote one.
+    if (fs::is_directory(out("targets")))
+      throw file_error(c_.output,
+                       "--resume: no checkpoint in this directory (the last run started in it stopped before its "
+                       "first checkpoint, and a start without --resume removes the previous run's): start it again "
+                       "without --resume");
+    throw file_error(c_.output, "--resume: no checkpoint in this directory");
+  }
+
+  // A start without --resume removes what an earlier run wrote into the folder, before its own first
+  // write: that run's final/ stayed while the new one went on, snapshots of iterations the new run
+  // never reached stayed for ever, and its initial.exr (another config's start) went into the new
+  // compare.png. Only names this job writes go (a user's other files in the folder, final/ or
+  // snapshots/ stay), and not the cached targets, which have their own key. summary.json goes first
+  // (it says the folder's run finished: killed early, a fresh run left a summary of 40 iterations
+  // beside its own checkpoint of 5, helper-45) and the checkpoint last: a run killed in between
+  // leaves the previous run's checkpoint for --resume, whose outputs are written again as it goes.
+  void remove_previous_outputs() {
+    auto remove = [](const fs::path& path) {
+      std::error_code ec;
+      fs::remove(path, ec);
+      if (ec) throw file_error(path.string(), "cannot remove the previous run's output (" + ec.message() + ")");
+    };
+    remove(out("summary.json"));
+    for (const char* name : {"loss.csv", "validation.csv", "loss.png", "param_rmse.png", "report.html", "compare.png",
+                             "slices.png", "initial.exr"})
+      remove(out(name));
+    // Parameter names are <object>.<property>: final/NAME.ext, snapshots/NAME_00025.ext.
+    const std::regex final_names(R"((view\.exr|params\.json|.+\.[^.]+\.(vol|png|exr)|.+\.ply))"),
+        snapshot_names(R"((view_[0-9]{5,}\.png|.+\.[^.]+_[0-9]{5,}\.(vol|png|exr)))");
+    for (const auto& [folder, names] : {std::pair{"final", &final_names}, std::pair{"snapshots", &snapshot_names}}) {
+      std::error_code ec;
+      if (!fs::is_directory(fs::symlink_status(out(folder), ec))) continue;
+      std::vector<fs::path> doomed;
+      for (fs::directory_iterator it(out(folder), ec), end; !ec && it != end; it.increment(ec))
+        if (it->is_regular_file(ec) && std::regex_match(it->path().filename().string(), *names))
+          doomed.push_back(it->path());
+      if (ec) throw file_error(out(folder), "cannot list the previous run's outputs (" + ec.message() + ")");
+      for (const auto& path : doomed) remove(path);
+      fs::remove(out(folder), ec);  // when nothing else is left in it
+    }
+    crash_point("outputs-removed");
+    remove_checkpoint_dir(out("checkpoint.old"));
+    remove_checkpoint_dir(out("checkpoint"));
+    crash_point("outputs-cleared");
   }
 
   void prepare_targets() {
@@ -1451,11 +1507,9 @@ class Job {
     if (at && std::strcmp(at, name) == 0) std::_Exit(137);
   }
 
+  // The checkpoint checkpoint_to_resume found.
   int load_checkpoint() {
-    std::string dir = out("checkpoint");
-    if (!fs::exists(dir + "/state.json") && fs::exists(out("checkpoint.old") + "/state.json"))
-      dir = out("checkpoint.old");
-    if (!fs::exists(dir + "/state.json")) throw file_error(c_.output, "--resume: no checkpoint in this directory");
+    const std::string dir = resume_dir_;
     const std::string state_path = dir + "/state.json";
     json state = parse_json_text(read_input_file(state_path), state_path);
     // A checkpoint is input like any other: every number is checked before the run continues

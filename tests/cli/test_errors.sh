@@ -780,6 +780,8 @@ PY
   resume_error state_fifo 'os.remove(d + "/state.json"); os.mkfifo(d + "/state.json")' "state.json" "not a regular file"
   resume_error state_directory 'os.remove(d + "/state.json"); os.mkdir(d + "/state.json")' "state.json" \
     "not a regular file"
+  # No checkpoint where a run started: a start without --resume removed the previous run's.
+  resume_error no_checkpoint 'import shutil; shutil.rmtree(d)' "no checkpoint" "without --resume"
   # Config errors found before anything is written: no output folder is left behind (the folder
   # and its rendered targets used to be made first), and messages name the config's pointer, not
   # a --set nobody gave.

@@ -100,5 +100,60 @@ code=$?
 [ $code -eq 137 ] || fail "fresh start crashed at checkpoint-written: exit $code, expected the injected 137"
 [ ! -e ref/summary.json ] || fail "a fresh start killed early left the previous run's summary.json"
 [ ! -e ref/checkpoint.tmp/left.by.a.killed.writer ] || fail "a killed writer's checkpoint.tmp/ stayed"
+# 5. A fresh start removes what the previous run in the folder wrote before its own first write: the
+# old final/ stayed while the new run went on, snapshots of iterations the new run never reached
+# stayed for ever, and the old initial.exr (another config's start) went into the new compare.png.
+# The cached targets (they have their own key) and the user's own files stay.
+job fresh > fresh.json
+sed 's/"iterations": 16/"iterations": 8/' fresh.json > fresh8.json
+grep -q '"iterations": 8' fresh8.json || fail "fresh8.json: the iteration count was not changed"
+"$bin" optimize fresh.json --threads 1 --quiet 2>> out.log || fail "the run of 16 iterations failed"
+old_outputs="summary.json loss.csv validation.csv loss.png param_rmse.png report.html compare.png initial.exr
+  final/floor.albedo.exr final/floor.albedo.png final/params.json final/view.exr snapshots/floor.albedo_00004.exr
+  snapshots/floor.albedo_00016.png snapshots/view_00016.png checkpoint/state.json"
+for f in $old_outputs targets/top.exr targets/top.exr.key; do
+  [ -f "fresh/$f" ] || fail "fixture: the run of 16 iterations wrote no $f"
+done
+mine="notes.txt final/notes.txt snapshots/notes.txt"
+for f in $mine; do echo "the user's" > "fresh/$f"; done
+"$bin" optimize fresh8.json --threads 1 --quiet 2>> out.log || fail "the fresh run of 8 iterations failed"
+for f in snapshots/floor.albedo_00012.exr snapshots/floor.albedo_00016.png snapshots/view_00016.png; do
+  [ ! -e "fresh/$f" ] || fail "a fresh run of 8 iterations left the previous run's $f"
+done
+[ -f fresh/snapshots/floor.albedo_00008.exr ] || fail "the fresh run of 8 iterations wrote no snapshot 8"
+for f in $mine targets/top.exr; do [ -f "fresh/$f" ] || fail "a fresh start removed $f"; done
+# Killed during the clean-up (BACKLIGHT_CRASH_AT=outputs-removed: everything but the checkpoint is
+# gone), the folder resumes: the finished run's checkpoint finishes again.
+"$bin" optimize fresh.json --threads 1 --quiet 2>> out.log || fail "the second run of 16 iterations failed"
+env BACKLIGHT_CRASH_AT=outputs-removed "$bin" optimize fresh8.json --threads 1 --quiet 2>> out.log
+code=$?
+[ $code -eq 137 ] || fail "crash at outputs-removed: exit $code, expected the injected 137"
+for f in $old_outputs; do
+  [ "$f" = checkpoint/state.json ] || [ ! -e "fresh/$f" ] || fail "a fresh start killed in its clean-up left $f"
+done
+[ -f fresh/checkpoint/state.json ] || fail "the clean-up removed the checkpoint before the other outputs"
+for f in $mine targets/top.exr targets/top.exr.key; do [ -f "fresh/$f" ] || fail "the clean-up removed $f"; done
+"$bin" optimize fresh.json --resume fresh --threads 1 --quiet 2>> out.log ||
+  fail "--resume of a folder whose clean-up was killed failed: $(tail -n 1 out.log)"
+for f in summary.json final/floor.albedo.exr compare.png initial.exr; do
+  [ -f "fresh/$f" ] || fail "the resumed finished run wrote no $f"
+done
+rows=$(($(wc -l < fresh/loss.csv) - 1))
+[ "$rows" -eq $iterations ] || fail "the resumed finished run's loss.csv has $rows rows, expected $iterations"
+# Killed after the clean-up, before its first write (outputs-cleared): the previous run's
+# checkpoint is gone too, and --resume says why there is none.
+env BACKLIGHT_CRASH_AT=outputs-cleared "$bin" optimize fresh8.json --threads 1 --quiet 2>> out.log
+code=$?
+[ $code -eq 137 ] || fail "crash at outputs-cleared: exit $code, expected the injected 137"
+for f in $old_outputs; do [ ! -e "fresh/$f" ] || fail "a fresh start killed after its clean-up left $f"; done
+[ ! -e fresh/checkpoint ] && [ ! -e fresh/checkpoint.old ] || fail "the previous run's checkpoint folder stayed"
+for f in $mine targets/top.exr; do [ -f "fresh/$f" ] || fail "the clean-up removed $f"; done
+"$bin" optimize fresh8.json --resume fresh --threads 1 --quiet 2> resume.err
+code=$?
+[ $code -eq 2 ] && [ "$(wc -l < resume.err)" -eq 1 ] && grep -q "no checkpoint" resume.err &&
+  grep -q "without --resume" resume.err || fail "--resume after a cleared start: exit $code: $(cat resume.err)"
+"$bin" optimize fresh8.json --threads 1 --quiet 2>> out.log || fail "a fresh start after the crashes failed"
+[ -f fresh/summary.json ] && [ -f fresh/final/floor.albedo.exr ] || fail "the fresh start did not finish"
+for f in $mine; do [ -f "fresh/$f" ] || fail "a fresh start removed $f"; done
 echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result; a crash inside the target cache;" \
-  "a fresh start over a finished folder"
+  "a fresh start over a finished folder, removing its outputs, killed in and after that clean-up"
