@@ -495,7 +495,13 @@ int run(int argc, char** argv) {
   auto* optimize_cmd =
       app.add_subcommand("optimize", "Gradient-descent optimization described by a JSON config (see README)");
   optimize_cmd->add_option("config", config, "Optimization config")->required();
-  optimize_cmd->add_option("--resume", resume, "Continue from the last checkpoint in this output directory");
+  auto* resume_option =
+      optimize_cmd->add_option("--resume", resume, "Continue from the last checkpoint in this output directory");
+  bool resume_any_scene = false;
+  optimize_cmd
+      ->add_flag("--resume-any-scene", resume_any_scene,
+                 "Resume a checkpoint made from another scene file with other content (refused otherwise)")
+      ->needs(resume_option);
   optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default, or 0: all cores)");
   optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
 
@@ -530,7 +536,7 @@ int run(int argc, char** argv) {
   if (*check_cmd) return cmd_check(check_flags, cf);
   if (*optimize_cmd) {
     if (resume && resume->empty()) throw InputError("--resume: an empty directory name");
-    return run_optimize(config, resume.value_or(""), opt_threads, opt_quiet);
+    return run_optimize(config, resume.value_or(""), opt_threads, opt_quiet, resume_any_scene);
   }
   return 0;
 }

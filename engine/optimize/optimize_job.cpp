@@ -121,6 +121,7 @@ struct OptimizedParam {
 
 struct Config {
   std::string file;
+  json source;  // the config as parsed: what a checkpoint records it was made from
   std::string scene;
   std::vector<std::string> scene_overrides;
   std::vector<OptimizedParam> params;
@@ -197,6 +198,7 @@ Config parse_config(const std::string& path) {
   json root = parse_json_text(text, path);
   Config c;
   c.file = path;
+  c.source = root;
   const fs::path dir = fs::path(path).parent_path();
   Node n(root, "", c.file);
   c.scene = (dir / n.string("scene")).lexically_normal().string();
@@ -447,6 +449,65 @@ uint64_t iteration_seed(uint64_t seed, int iteration, int view, int pass) {
 
 bool is_grid(const Param& p) { return p.shape.size() == 4; }
 
+// 64-bit FNV-1a, as 16 hex digits: a checkpoint's record of a file or an image (std::hash, which
+// the target cache's key uses, may change with the standard library; a record outlives builds).
+uint64_t fnv1a(const void* data, size_t bytes, uint64_t h = 0xcbf29ce484222325ull) {
+  const auto* b = static_cast<const unsigned char*>(data);
+  for (size_t i = 0; i < bytes; ++i) h = (h ^ b[i]) * 0x100000001b3ull;
+  return h;
+}
+std::string hex64(uint64_t h) {
+  char text[17];
+  std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(h));
+  return text;
+}
+bool is_hex64(const json& j) {
+  return j.is_string() && j.get<std::string>().size() == 16 &&
+         j.get<std::string>().find_first_not_of("0123456789abcdef") == std::string::npos;
+}
+
+// `text` on one line: control characters as \xNN (a path in a one-line message; not shortened).
+std::string one_line(const std::string& text) {
+  std::string out;
+  for (char ch : text) {
+    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
+      out += hex;
+    } else {
+      out += ch;
+    }
+  }
+  return out;
+}
+
+// The paths of the keys where two configs differ ("parameters.wall.albedo.lr"; a list is one
+// value: "schedule", not each stage), in key order, a key of only one of them included.
+void config_differences(const json& a, const json& b, const std::string& path, std::vector<std::string>& out) {
+  if (!a.is_object() || !b.is_object()) {
+    if (a != b) out.push_back(path);
+    return;
+  }
+  std::set<std::string> keys;
+  for (auto it = a.begin(); it != a.end(); ++it) keys.insert(it.key());
+  for (auto it = b.begin(); it != b.end(); ++it) keys.insert(it.key());
+  for (const auto& k : keys) {
+    const std::string at = path.empty() ? printable_name(k) : path + "." + printable_name(k);
+    if (!a.contains(k) || !b.contains(k))
+      out.push_back(at);
+    else
+      config_differences(a[k], b[k], at, out);
+  }
+}
+
+// "a, b, c and 4 more": at most `cap` names (the one-line note stays readable).
+std::string name_list(const std::vector<std::string>& names, size_t cap) {
+  std::string text;
+  for (size_t i = 0; i < names.size() && i < cap; ++i) text += (i ? ", " : "") + names[i];
+  if (names.size() > cap) text += " and " + std::to_string(names.size() - cap) + " more";
+  return text;
+}
+
 // Whether a parameter already has a stage's resolution.
 bool has_resolution(const Param& p, const Stage& s) {
   if (is_grid(p)) return s.depth == 0 || (p.shape[2] == s.width && p.shape[1] == s.height && p.shape[0] == s.depth);
@@ -611,10 +672,14 @@ struct ValidationRow {
 
 class Job {
  public:
-  Job(Config c, bool quiet) : c_(std::move(c)), quiet_(quiet) {}
+  Job(Config c, bool quiet, bool resume_any_scene)
+      : c_(std::move(c)), quiet_(quiet), resume_any_scene_(resume_any_scene) {}
 
   int run(bool resume) {
     scene_ = load_scene(c_.scene);
+    // What a checkpoint records of the scene: everything loaded from its file (the textures,
+    // meshes and grids it refers to too), before the config's "set" (that is the config's part).
+    scene_content_ = scene_->content_hash();
     apply_scene_overrides(*scene_);
     require_same_scene(*scene_);
     resolve_views();
@@ -680,8 +745,10 @@ class Job {
     check_downsampling();
     if (!resume) dist::agreed_step([&] { apply_initial_values(); });  // a bad "init" fails alike on every rank
     read_target_inputs();
-    // Before anything is written into the folder (targets/ says whether a run started in it).
-    if (resume) dist::agreed_step([&] { resume_dir_ = checkpoint_to_resume(); });
+    made_from_ = made_from();
+    // The checkpoint's record is read before anything is written into the folder: a checkpoint of
+    // another scene is refused before that scene's targets replace the cached ones.
+    if (resume) dist::agreed_step([&] { check_made_from(); });
     if (root_) {
       ensure_output_folder(c_.output);
       // A run killed while writing leaves its temporaries; this run owns the folder, so clear them,
@@ -704,6 +771,8 @@ class Job {
       // killed in its clean-up none (a finished run's checkpoint then runs no iteration to write them).
       write_log();
       if (!validation_.empty()) write_validation();
+      // After the checkpoint was read: a bad one is one line, the error, not a note and an error.
+      if (root_ && !resume_note_.empty()) std::fprintf(stderr, "%s\n", resume_note_.c_str());
     }
     snapshot_initial();
     return optimize(start);
@@ -712,7 +781,14 @@ class Job {
  private:
   Config c_;
   bool quiet_;
-  std::string resume_dir_;  // --resume: the checkpoint folder (checkpoint_to_resume)
+  bool resume_any_scene_;
+  uint64_t scene_content_ = 0;  // scene_'s content_hash() as loaded from its file
+  json made_from_;              // what this run's checkpoints record they were made from (made_from())
+  // --resume: the checkpoint folder, its state.json as read by check_made_from (load_checkpoint
+  // reads the rest), and the note on what it was made from (empty when nothing differs).
+  std::string resume_dir_;
+  json resume_state_;
+  std::string resume_note_;
   const bool root_ = dist::is_root();
   std::unique_ptr<Scene> scene_;
   std::vector<int> cameras_;
@@ -792,8 +868,7 @@ class Job {
 
   // What a reference target of view v is rendered from, as text (hashed: the scene file's bytes).
   std::string target_key(size_t v, const Camera& cam) const {
-    std::ifstream in(c_.scene, std::ios::binary);
-    const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const std::string bytes = scene_file_bytes();
     std::string key = "scene " + std::to_string(std::hash<std::string>{}(bytes)) + "\n";
     for (const auto& o : c_.scene_overrides) key += "set " + o + "\n";
     for (const auto& o : c_.reference_overrides) key += "reference " + o + "\n";
@@ -803,6 +878,11 @@ class Job {
     key += "spp " + std::to_string(c_.reference_spp) + " seed " + std::to_string(0xabcdefull + v) + " camera " +
            cam.name + " " + std::to_string(cam.width) + "x" + std::to_string(cam.height) + "\n";
     return key;
+  }
+
+  std::string scene_file_bytes() const {
+    std::ifstream in(c_.scene, std::ios::binary);
+    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   }
 
   // The targets' inputs, read before anything is written: the target files (size-checked) and
@@ -837,6 +917,40 @@ class Job {
         for (auto& rc : reference_->cameras) rc.width = c_.width, rc.height = c_.height, rc.update();
       reference_content_ = reference_->content_hash();
     }
+    // What a checkpoint records of each view's target: a target file's pixels, or what a reference
+    // target is rendered from (the target cache's key).
+    for (size_t v = 0; v < cameras_.size(); ++v) {
+      const Camera& cam = scene_->cameras[size_t(cameras_[v])];
+      uint64_t h;
+      if (auto it = target_images_.find(cam.name); it != target_images_.end()) {
+        const Image& t = it->second;
+        const int size[3] = {t.width, t.height, t.channels};
+        h = fnv1a(t.data.data(), t.data.size() * sizeof(float), fnv1a(size, sizeof size));
+      } else {
+        const std::string key = target_key(v, cam);
+        h = fnv1a(key.data(), key.size());
+      }
+      target_prints_[cam.name] = hex64(h);
+    }
+  }
+  std::map<std::string, std::string> target_prints_;  // by camera name
+
+  // What this run's checkpoints were made from: the config as parsed (without "output": where the
+  // run writes, which --resume names anyway), the scene file (its absolute name, its bytes and the
+  // content loaded from it) and every view's target. check_made_from compares a checkpoint's with it.
+  json made_from() const {
+    json config = c_.source;
+    if (config.is_object()) config.erase("output");
+    std::error_code ec;
+    fs::path file = fs::weakly_canonical(fs::absolute(c_.scene), ec);
+    if (ec) file = fs::absolute(c_.scene).lexically_normal();
+    const std::string bytes = scene_file_bytes();
+    return {{"config", config},
+            {"scene",
+             {{"file", file.string()},
+              {"bytes", hex64(fnv1a(bytes.data(), bytes.size()))},
+              {"content", hex64(scene_content_)}}},
+            {"targets", target_prints_}};
   }
 
   // The checkpoint --resume continues from: checkpoint/, or checkpoint.old/ when a swap was cut short.
@@ -854,6 +968,71 @@ class Job {
                        "first checkpoint, and a start without --resume removes the previous run's): start it again "
                        "without --resume");
     throw file_error(c_.output, "--resume: no checkpoint in this directory");
+  }
+
+  // Reads the checkpoint's state.json and compares its record of what it was made from with this
+  // run's: a changed config or scene file is resumed (resuming with other settings is how a run
+  // is continued on purpose) after one note naming what differs; a checkpoint of another scene,
+  // another file with other content, is refused without --resume-any-scene: its parameters of the
+  // same names and shapes are that scene's values. A checkpoint without the record (written
+  // before checkpoints had one) resumes with a note.
+  void check_made_from() {
+    resume_dir_ = checkpoint_to_resume();
+    const std::string state_path = resume_dir_ + "/state.json";
+    resume_state_ = parse_json_text(read_input_file(state_path), state_path);
+    const json& state = resume_state_;
+    if (!state.is_object()) return;  // load_checkpoint says what is wrong with it
+    const std::string resuming = "optimize: resuming " + one_line(resume_dir_);
+    if (!state.contains("made_from")) {
+      resume_note_ = resuming +
+                     ", which records nothing of what it was made from (an older backlight's checkpoint): its "
+                     "config, scene and targets are unknown";
+      return;
+    }
+    auto bad = [&](const std::string& at, const std::string& what) { throw file_error(state_path, at + ": " + what); };
+    const json& m = state["made_from"];
+    if (!m.is_object())
+      bad("/made_from", "expected an object {config, scene, targets} (what the checkpoint was made from)");
+    if (!m.contains("config") || !m["config"].is_object()) bad("/made_from/config", "expected the config's object");
+    if (!m.contains("scene") || !m["scene"].is_object())
+      bad("/made_from/scene", "expected an object {file, bytes, content}");
+    const json& scene = m["scene"];
+    if (!scene.contains("file") || !scene["file"].is_string() || scene["file"].get<std::string>().empty())
+      bad("/made_from/scene/file", "expected the scene file's name");
+    for (const char* key : {"bytes", "content"})
+      if (!scene.contains(key) || !is_hex64(scene[key]))
+        bad(std::string("/made_from/scene/") + key, "expected 16 hexadecimal digits");
+    if (!m.contains("targets") || !m["targets"].is_object())
+      bad("/made_from/targets", "expected an object {view: 16 hexadecimal digits}");
+    for (auto it = m["targets"].begin(); it != m["targets"].end(); ++it)
+      if (!is_hex64(it.value()))
+        bad("/made_from/targets/" + printable_name(it.key()), "expected 16 hexadecimal digits");
+
+    std::vector<std::string> changes, keys, targets;
+    config_differences(m["config"], made_from_["config"], "", keys);
+    if (!keys.empty()) changes.push_back("the config differs in " + name_list(keys, 6));
+    const json& now = made_from_["scene"];
+    const std::string was_file = scene["file"].get<std::string>(), now_file = now["file"].get<std::string>();
+    const bool same_bytes = scene["bytes"] == now["bytes"], same_content = scene["content"] == now["content"];
+    if (!same_bytes || !same_content) {
+      if (was_file != now_file) {
+        if (!resume_any_scene_)
+          throw file_error(state_path, "the checkpoint was made from the scene " + one_line(was_file) +
+                                           ", this config's is " + one_line(now_file) +
+                                           ", another file with other content: parameters of the same names and "
+                                           "shapes hold that scene's values (--resume-any-scene resumes it anyway)");
+        changes.push_back("another scene (was " + one_line(was_file) + ")");
+      } else {
+        changes.push_back(same_bytes ? "files the scene refers to changed" : "scene file changed");
+      }
+    }
+    for (auto it = made_from_["targets"].begin(); it != made_from_["targets"].end(); ++it)
+      if (m["targets"].contains(it.key()) && m["targets"][it.key()] != it.value())
+        targets.push_back(printable_name(it.key()));
+    if (!targets.empty()) changes.push_back("targets of " + name_list(targets, 4) + " changed");
+    if (changes.empty()) return;
+    resume_note_ = resuming + " made from other inputs: ";
+    for (size_t i = 0; i < changes.size(); ++i) resume_note_ += (i ? "; " : "") + changes[i];
   }
 
   // A start without --resume removes what an earlier run wrote into the folder, before its own first
@@ -1453,6 +1632,7 @@ class Job {
     json validation = json::array();
     for (const auto& r : validation_) validation.push_back({r.iteration, r.loss, r.seconds});
     state["validation"] = validation;
+    state["made_from"] = made_from_;
     for (const auto& p : c_.params) {
       const Param& param = scene_->params[p.handle];
       const bool half = p.adam.settings().bf16_moments;
@@ -1507,11 +1687,11 @@ class Job {
     if (at && std::strcmp(at, name) == 0) std::_Exit(137);
   }
 
-  // The checkpoint checkpoint_to_resume found.
+  // The checkpoint check_made_from found and read.
   int load_checkpoint() {
     const std::string dir = resume_dir_;
     const std::string state_path = dir + "/state.json";
-    json state = parse_json_text(read_input_file(state_path), state_path);
+    const json state = std::move(resume_state_);
     // A checkpoint is input like any other: every number is checked before the run continues
     // from it (a huge next_iteration ran for ever, a NaN moment made every later value NaN).
     auto bad = [&](const std::string& what) { throw file_error(state_path, what); };
@@ -1787,7 +1967,8 @@ class Job {
 
 }  // namespace
 
-int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet) {
+int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet,
+                 bool resume_any_scene) {
   if (threads < 0) throw InputError("--threads must be ≥ 1");
   std::unique_ptr<tbb::global_control> limit;
   if (threads > 0)
@@ -1798,7 +1979,7 @@ int run_optimize(const std::string& config_path, const std::string& resume_dir, 
       if (!fs::is_directory(resume_dir)) throw file_error(resume_dir, "--resume: not a directory");
       config.output = resume_dir;
     }
-    Job job(std::move(config), quiet);
+    Job job(std::move(config), quiet, resume_any_scene);
     return job.run(!resume_dir.empty());
   });
 }

@@ -84,8 +84,10 @@ inline constexpr float kLogFloor = 1e-6f;
 void to_log_space(std::vector<float>& value, std::vector<float>& grad);
 
 // `backlight optimize CONFIG [--resume DIR]`: returns the process exit code. A non-empty
-// `resume_dir` continues the run whose outputs are in that directory.
-int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet);
+// `resume_dir` continues the run whose outputs are in that directory; `resume_any_scene` resumes
+// a checkpoint made from another scene file with other content, which is refused otherwise.
+int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet,
+                 bool resume_any_scene = false);
 // Reads and validates an optimization config (JSON, keys, values) without loading its scene or
 // running anything; throws InputError like run_optimize. Used by tests/fuzz.
 void check_optimize_config(const std::string& config_path);

@@ -780,6 +780,16 @@ PY
   resume_error state_fifo 'os.remove(d + "/state.json"); os.mkfifo(d + "/state.json")' "state.json" "not a regular file"
   resume_error state_directory 'os.remove(d + "/state.json"); os.mkdir(d + "/state.json")' "state.json" \
     "not a regular file"
+  # What the checkpoint was made from (config, scene, targets) is recorded in state.json and read
+  # like the rest of it; a checkpoint of another scene file with other content is refused.
+  resume_error made_from_string 's["made_from"] = "x"' "state.json" "/made_from" "expected an object"
+  resume_error made_from_config 's["made_from"]["config"] = [1]' "state.json" "/made_from/config"
+  resume_error made_from_hash 's["made_from"]["scene"]["content"] = 12' "state.json" "/made_from/scene/content"
+  resume_error made_from_target 's["made_from"]["targets"]["main"] = "xyz"' "state.json" "/made_from/targets/main"
+  resume_error made_from_file 'del s["made_from"]["scene"]["file"]' "state.json" "/made_from/scene/file"
+  resume_error other_scene \
+    's["made_from"]["scene"] = {"file": "/elsewhere/scene.json", "bytes": "0123456789abcdef", "content": "0123456789abcdef"}' \
+    "state.json" "/elsewhere/scene.json" "small/scene.json" "--resume-any-scene"
   # No checkpoint where a run started: a start without --resume removed the previous run's.
   resume_error no_checkpoint 'import shutil; shutil.rmtree(d)' "no checkpoint" "without --resume"
   # Config errors found before anything is written: no output folder is left behind (the folder
@@ -925,7 +935,7 @@ in_background good_help
 in_background good_command_help render --output
 in_background good_command_help params --json --dump
 in_background good_command_help grad --target --adjoint-image --out --method --loss --adjoint-seed --param --memory-budget
-in_background good_command_help_only optimize --resume --threads --quiet
+in_background good_command_help_only optimize --resume --resume-any-scene --threads --quiet
 in_background good_command_help check --target --adjoint-image --param --directions --eps --tolerance --method --loss \
   --direction-seed
 
