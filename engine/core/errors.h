@@ -23,10 +23,11 @@ struct InputError : std::runtime_error {
   }
 };
 
-// `name` for a one-line message: control characters and NUL as \xNN, at most 64 characters.
-inline std::string printable_name(const std::string& name) {
+// `name` for a one-line message: control characters and NUL as \xNN, at most `max` characters
+// (a name inside a message; std::string::npos for a path that must be given whole).
+inline std::string printable_name(const std::string& name, size_t max = 64) {
   std::string out;
-  for (char ch : name.substr(0, 64)) {
+  for (char ch : name.substr(0, max)) {
     if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
       char hex[8];
       std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
@@ -35,7 +36,7 @@ inline std::string printable_name(const std::string& name) {
       out += ch;
     }
   }
-  return name.size() > 64 ? out + "..." : out;
+  return name.size() > max ? out + "..." : out;
 }
 
 // "<file>: <problem>" — the one-line form every loader uses.

@@ -466,20 +466,8 @@ bool is_hex64(const json& j) {
          j.get<std::string>().find_first_not_of("0123456789abcdef") == std::string::npos;
 }
 
-// `text` on one line: control characters as \xNN (a path in a one-line message; not shortened).
-std::string one_line(const std::string& text) {
-  std::string out;
-  for (char ch : text) {
-    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
-      char hex[8];
-      std::snprintf(hex, sizeof hex, "\\x%02x", unsigned(static_cast<unsigned char>(ch)));
-      out += hex;
-    } else {
-      out += ch;
-    }
-  }
-  return out;
-}
+// A path in a one-line message, not shortened (printable_name).
+std::string whole_name(const std::string& path) { return printable_name(path, std::string::npos); }
 
 // The paths of the keys where two configs differ ("parameters.wall.albedo.lr"; a list is one
 // value: "schedule", not each stage), in key order, a key of only one of them included.
@@ -982,7 +970,7 @@ class Job {
     resume_state_ = parse_json_text(read_input_file(state_path), state_path);
     const json& state = resume_state_;
     if (!state.is_object()) return;  // load_checkpoint says what is wrong with it
-    const std::string resuming = "optimize: resuming " + one_line(resume_dir_);
+    const std::string resuming = "optimize: resuming " + whole_name(resume_dir_);
     if (!state.contains("made_from")) {
       resume_note_ = resuming +
                      ", which records nothing of what it was made from (an older backlight's checkpoint): its "
@@ -1017,11 +1005,11 @@ class Job {
     if (!same_bytes || !same_content) {
       if (was_file != now_file) {
         if (!resume_any_scene_)
-          throw file_error(state_path, "the checkpoint was made from the scene " + one_line(was_file) +
-                                           ", this config's is " + one_line(now_file) +
+          throw file_error(state_path, "the checkpoint was made from the scene " + whole_name(was_file) +
+                                           ", this config's is " + whole_name(now_file) +
                                            ", another file with other content: parameters of the same names and "
                                            "shapes hold that scene's values (--resume-any-scene resumes it anyway)");
-        changes.push_back("another scene (was " + one_line(was_file) + ")");
+        changes.push_back("another scene (was " + whole_name(was_file) + ")");
       } else {
         changes.push_back(same_bytes ? "files the scene refers to changed" : "scene file changed");
       }
