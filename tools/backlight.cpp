@@ -35,19 +35,36 @@ namespace fs = std::filesystem;
 
 namespace {
 
-// Flags every scene-consuming command shares.
-// Seeds: decimal digits within 64 bits (CLI11 took "-1" and 10^23 as 2^64 - 1).
-const CLI::Validator kSeed(
-    [](std::string& text) -> std::string {
-      if (text.empty() || text.find_first_not_of("0123456789") != std::string::npos)
-        return "'" + text + "' is not a non-negative integer";
-      errno = 0;
-      (void)std::strtoull(text.c_str(), nullptr, 10);
-      if (errno == ERANGE) return "'" + text + "' exceeds 2^64 - 1";
-      return {};
-    },
-    "SEED");
+// Integer flags take decimal digits, with a '-' only where negatives mean something (--max-depth
+// -1). CLI11 converts with strtoll(.., 0), which read "0x10" as 16 and "010" as 8 (octal) and
+// skipped leading spaces, while --seed refused "0x1F" and "1e1" was CLI11's "Could not convert".
+// This transform checks the text and the range of the flag's type, and drops leading zeros, so
+// that CLI11's conversion reads the decimal number that was written.
+// max_text is max written out for the message; negative values are taken by int flags only, down
+// to -2^31.
+CLI::Validator decimal(bool negative, uint64_t max, const char* max_text, const char* description = "") {
+  return CLI::Validator(
+      [=](std::string& text) -> std::string {
+        const bool minus = negative && !text.empty() && text[0] == '-';
+        const std::string digits = text.substr(minus ? 1 : 0);
+        if (digits.empty() || digits.find_first_not_of("0123456789") != std::string::npos)
+          return "'" + text +
+                 (negative ? "' is not an integer (decimal digits, after an optional '-')"
+                           : "' is not a non-negative integer (decimal digits only)");
+        errno = 0;
+        const uint64_t magnitude = std::strtoull(digits.c_str(), nullptr, 10);
+        if (errno == ERANGE || magnitude > max + (minus ? 1 : 0))
+          return "'" + text + (minus ? std::string("' is below -2^31") : "' exceeds " + std::string(max_text));
+        text = (minus && magnitude > 0 ? "-" : "") + std::to_string(magnitude);
+        return {};
+      },
+      description);
+}
+const CLI::Validator kCount = decimal(false, INT32_MAX, "2^31 - 1");          // int flags ≥ 0
+const CLI::Validator kInteger = decimal(true, INT32_MAX, "2^31 - 1");         // int flags that take -1
+const CLI::Validator kSeed = decimal(false, UINT64_MAX, "2^64 - 1", "SEED");  // CLI11 took "-1" and 10^23 as 2^64 - 1
 
+// Flags every scene-consuming command shares.
 struct SceneFlags {
   std::string scene;
   std::vector<std::string> sets;
@@ -63,13 +80,14 @@ struct SceneFlags {
         ->required();
     app->add_option("--set", sets, "Override a parameter: NAME=path/to/image.exr or NAME=v1,v2,v3 (repeatable)");
     app->add_option("--resolution", resolution, "Film size WxH (overrides the camera's)");
-    app->add_option("--camera", camera, "Camera index (default 0)");
-    app->add_option("--spp", spp, "Samples per pixel (default: the scene's)");
-    app->add_option("--seed", seed, "Sampler seed (default: the scene's)")->check(kSeed);
+    app->add_option("--camera", camera, "Camera index (default 0)")->transform(kCount);
+    app->add_option("--spp", spp, "Samples per pixel (default: the scene's)")->transform(kCount);
+    app->add_option("--seed", seed, "Sampler seed (default: the scene's)")->transform(kSeed);
     app->add_option("--max-depth", max_depth,
-                    "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)");
-    app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off");
-    app->add_option("--threads", threads, "Worker threads (default, or 0: all cores)");
+                    "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)")
+        ->transform(kInteger);
+    app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off")->transform(kCount);
+    app->add_option("--threads", threads, "Worker threads (default, or 0: all cores)")->transform(kCount);
     app->add_flag("--quiet,-q", quiet, "No progress bar");
   }
 
@@ -205,7 +223,7 @@ struct GradFlags {
     // An adjoint image is its own functional: a --loss with it was ignored without a word.
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)")
-        ->check(kSeed);
+        ->transform(kSeed);
     app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
     app->add_option("--memory-budget", memory_budget,
                     "Taped mode: limit on the tape and its sweep's adjoints (20 bytes per recorded operation, "
@@ -226,7 +244,7 @@ struct CheckFlags {
     auto* adjoint =
         app->add_option("--adjoint-image", adjoint_image, "Check the linear functional sum(dI * I) instead of a loss");
     app->add_option("--param", param, "Parameter to check")->required();
-    app->add_option("--directions", directions, "Number of random directions (default 4)");
+    app->add_option("--directions", directions, "Number of random directions (default 4)")->transform(kCount);
     app->add_option(
         "--eps", eps,
         "Finite-difference step: theta +- eps*v, v with i.i.d. standard-normal elements (vertex positions: one "
@@ -236,14 +254,15 @@ struct CheckFlags {
                     "over the directions; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
-    app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->check(kSeed);
+    app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->transform(kSeed);
     app->add_option(
-        "--seeds", seeds,
-        "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
-        "differences below Student's t quantile of the normal's 4-sigma tail for N - 1 degrees of "
-        "freedom (or the means within --tolerance); INCONCLUSIVE, exit 1, when some direction could "
-        "not have seen an error of 25% of the derivatives' RMS. For parameters sampling depends on (roughness, "
-        "metallic, media density, scale and g) and for geometry (default 1: same-seed comparison)");
+           "--seeds", seeds,
+           "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
+           "differences below Student's t quantile of the normal's 4-sigma tail for N - 1 degrees of "
+           "freedom (or the means within --tolerance); INCONCLUSIVE, exit 1, when some direction could "
+           "not have seen an error of 25% of the derivatives' RMS. For parameters sampling depends on (roughness, "
+           "metallic, media density, scale and g) and for geometry (default 1: same-seed comparison)")
+        ->transform(kCount);
   }
 };
 
@@ -502,7 +521,7 @@ int run(int argc, char** argv) {
       ->add_flag("--resume-any-scene", resume_any_scene,
                  "Resume a checkpoint made from another scene file with other content (refused otherwise)")
       ->needs(resume_option);
-  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default, or 0: all cores)");
+  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default, or 0: all cores)")->transform(kCount);
   optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
 
   if (argc > 1 && argv[1][0] != '-') {

@@ -1274,12 +1274,57 @@ ignored_method_flags() {
 }
 in_background ignored_method_flags
 
+# ---------------------------------------------------------------------------------------------
+# Integer flags take decimal digits (and a '-' where negatives mean something): CLI11 read 0x10
+# as 16 and 010 as 8 (octal), took " 16", and refused 1e1 with "Could not convert", while
+# --seed refused 0x1F. One message for all: the flag, the value and what it should be.
+int_flag_cases() {  # int_flag_cases COMMAND_ARGS...: every integer flag of that command, hex
+  local command="$1"; shift
+  local flag
+  for flag in "$@"; do
+    expect_error "int_hex_${command}_${flag#--}" "$flag: '0x1' is not a non-negative integer (decimal digits only)" -- \
+      "$command" $(case "$command" in
+        optimize) echo small/opt.json ;;
+        render) echo "$small" -o o.exr ;;
+        params) echo "$small" ;;
+        grad) echo "$small" --target t16.exr --out g_int ;;
+        check) echo "$small" --target t16.exr --param light.radiance ;;
+      esac) -q "$flag" 0x1
+  done
+}
+int_flag_cases render --camera --spp --seed --rr-depth --threads
+int_flag_cases params --camera --spp --seed --rr-depth --threads
+int_flag_cases grad --camera --spp --seed --rr-depth --threads --adjoint-seed
+int_flag_cases check --camera --spp --seed --rr-depth --threads --directions --seeds --direction-seed
+int_flag_cases optimize --threads
+expect_error int_max_depth_hex "--max-depth: '0x6' is not an integer (decimal digits, after an optional '-')" -- \
+  render "$small" -o o.exr -q --max-depth 0x6
+expect_error int_spp_space "--spp: ' 16' is not a non-negative integer" -- render "$small" -o o.exr -q --spp " 16"
+expect_error int_spp_exponent "--spp: '1e1' is not a non-negative integer" -- render "$small" -o o.exr -q --spp 1e1
+expect_error int_spp_plus "--spp: '+16' is not a non-negative integer" -- render "$small" -o o.exr -q --spp +16
+expect_error int_spp_fraction "--spp: '16.0' is not a non-negative integer" -- render "$small" -o o.exr -q --spp 16.0
+expect_error int_max_depth_minus_only "--max-depth: '-' is not an integer" -- render "$small" -o o.exr -q --max-depth=-
+expect_error int_spp_overflow "--spp: '99999999999' exceeds 2^31 - 1" -- render "$small" -o o.exr -q --spp 99999999999
+expect_error int_max_depth_underflow "--max-depth: '-99999999999' is below -2^31" -- \
+  render "$small" -o o.exr -q --max-depth -99999999999
+expect_error int_seed_hex "--seed: '0x1F' is not a non-negative integer (decimal digits only)" -- \
+  render "$small" -o o.exr -q --seed 0x1F
+# Decimal inputs keep working, leading zeros as decimal: --spp 010 is 10 samples, --seed 010 seed 10.
+int_decimal() {
+  expect_ok int_spp_leading_zero render "$small" -o int_spp.exr -q --spp 010 --max-depth -1 --rr-depth 00 &&
+    { grep -q " 10 spp," err.int_spp_leading_zero || fail "--spp 010 is not 10 samples: $(cat err.int_spp_leading_zero)"; }
+  expect_ok int_seed_010 render "$small" -o int_seed_010.exr -q --spp 1 --seed 010 &&
+    expect_ok int_seed_10 render "$small" -o int_seed_10.exr -q --spp 1 --seed 10 &&
+    { cmp -s int_seed_010.exr int_seed_10.exr || fail "--seed 010 renders another image than --seed 10"; }
+}
+in_background int_decimal
+
 wait
 # Error cases write nothing.
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
 [ ! -e "$bad/out-must-not-exist" ] || fail "a config in tests/data/bad created its output folder"
 for d in small/cfg_out_*; do [ ! -e "$d" ] || fail "a config error left its output folder $d"; done
-for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9 g_err10; do
+for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9 g_err10 g_int; do
   [ ! -e "$d" ] || fail "an error case created output directory $d"
 done
 
