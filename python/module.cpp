@@ -402,7 +402,7 @@ std::unique_ptr<tbb::global_control>& thread_limit() {
   static auto* limit = new std::unique_ptr<tbb::global_control>;
   return *limit;
 }
-constexpr int kMaxThreads = 1 << 16;
+constexpr int kMaxThreads = int(limits::kThreads);  // the CLI's --threads limit
 
 void set_threads(const py::object& threads) {
   if (threads.is_none()) {

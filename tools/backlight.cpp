@@ -64,6 +64,9 @@ const CLI::Validator kCount = decimal(false, INT32_MAX, "2^31 - 1");          //
 const CLI::Validator kInteger = decimal(true, INT32_MAX, "2^31 - 1");         // int flags that take -1
 const CLI::Validator kSeed = decimal(false, UINT64_MAX, "2^64 - 1", "SEED");  // CLI11 took "-1" and 10^23 as 2^64 - 1
 
+const std::string kThreadsHelp =
+    "Worker threads (default, or 0: all cores; at most " + std::to_string(limits::kThreads) + ")";
+
 // Flags every scene-consuming command shares.
 struct SceneFlags {
   std::string scene;
@@ -87,7 +90,7 @@ struct SceneFlags {
                     "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)")
         ->transform(kInteger);
     app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off")->transform(kCount);
-    app->add_option("--threads", threads, "Worker threads (default, or 0: all cores)")->transform(kCount);
+    app->add_option("--threads", threads, kThreadsHelp)->transform(kCount);
     app->add_flag("--quiet,-q", quiet, "No progress bar");
   }
 
@@ -142,6 +145,7 @@ struct SceneFlags {
 
 std::unique_ptr<tbb::global_control> thread_limit(int threads) {
   if (threads < 0) throw InputError("--threads must be ≥ 1 (or 0: all cores)");
+  limits::require_at_most("--threads", "thread count", uint64_t(threads), limits::kThreads);
   if (threads == 0) return nullptr;
   return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));
 }
@@ -521,7 +525,7 @@ int run(int argc, char** argv) {
       ->add_flag("--resume-any-scene", resume_any_scene,
                  "Resume a checkpoint made from another scene file with other content (refused otherwise)")
       ->needs(resume_option);
-  optimize_cmd->add_option("--threads", opt_threads, "Worker threads (default, or 0: all cores)")->transform(kCount);
+  optimize_cmd->add_option("--threads", opt_threads, kThreadsHelp)->transform(kCount);
   optimize_cmd->add_flag("--quiet,-q", opt_quiet, "No progress bar");
 
   if (argc > 1 && argv[1][0] != '-') {

@@ -21,6 +21,11 @@ inline constexpr uint64_t kSpp = 1ull << 20;              // samples per pixel i
 inline constexpr uint64_t kCheckDirections = 1ull << 16;  // `check --directions`: two renders each
 inline constexpr uint64_t kGridVoxels = 1ull << 30;       // voxels of a volume grid (4 GB as float)
 inline constexpr uint64_t kMeshElements = 1ull << 28;     // vertices, or triangles, of one mesh
+// Worker threads (--threads, backlight.set_threads): far more than any machine has, so that
+// oversubscription stays possible, and far below what breaks: --threads 1000000000 made Embree
+// fail to allocate for its thread pool ("Embree error 4: out of memory") and then hang, while
+// 10^6 still rendered the Cornell box (170 MB).
+inline constexpr uint64_t kThreads = 1ull << 16;
 // All meshes of one scene (or one glTF file) together, every instance counted: a glTF node tree
 // can instance one mesh thousands of times, and a mesh can list one accessor in many primitives,
 // so a 100 KB file could otherwise ask for 10^10 vertices.

@@ -1958,6 +1958,7 @@ class Job {
 int run_optimize(const std::string& config_path, const std::string& resume_dir, int threads, bool quiet,
                  bool resume_any_scene) {
   if (threads < 0) throw InputError("--threads must be ≥ 1");
+  limits::require_at_most("--threads", "thread count", uint64_t(threads), limits::kThreads);
   std::unique_ptr<tbb::global_control> limit;
   if (threads > 0)
     limit = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, size_t(threads));

@@ -36,7 +36,11 @@ in_background() { cases=$((cases + 1)); throttle; "$@" & }
 run_bin() {
   local out="$1" err="$2"
   shift 2
-  "$bin" "$@" >"$out" 2>"$err" </dev/null
+  if [ -n "${run_timeout:-}" ]; then
+    timeout -k 5 "$run_timeout" "$bin" "$@" >"$out" 2>"$err" </dev/null
+  else
+    "$bin" "$@" >"$out" 2>"$err" </dev/null
+  fi
 }
 
 # expect_error NAME PATTERN... -- ARGS...
@@ -51,6 +55,7 @@ expect_error_now() {
   run_bin "$tmp/out.$name" "$err" "$@" || rc=$?
   local lines; lines="$(awk 'END { print NR }' "$err")"  # counts an unterminated last line too
   local msg; msg="$(cat "$err")"
+  if [ -n "${run_timeout:-}" ] && [ "$rc" -eq 124 ]; then fail "$name: hung (stopped after $run_timeout s): $msg"; return; fi
   if [ "$rc" -ge 128 ]; then fail "$name: crashed (status $rc, signal $((rc - 128))): $msg"; return; fi
   case "$msg" in *"internal error"*) fail "$name: input reached an internal error: $msg" ;; esac
   [ "$rc" -eq 2 ] || fail "$name: exit status $rc, expected 2: $msg"
@@ -65,6 +70,10 @@ expect_error_now() {
     fi
   done
 }
+
+# expect_error_timed NAME PATTERN... -- ARGS...: expect_error for an input that hung: stopped
+# after 60 s, a failure of its own (the suite ran on for ever).
+expect_error_timed() { cases=$((cases + 1)); throttle; (run_timeout=60 && expect_error_now "$@") & }
 
 # expect_error_small NAME PATTERN... -- ARGS...: expect_error with no room for a large allocation:
 # an input whose header claims gigabytes must be refused before allocating them. The address space
@@ -1275,6 +1284,24 @@ ignored_method_flags() {
 in_background ignored_method_flags
 
 # ---------------------------------------------------------------------------------------------
+# Thread counts: --threads 1000000000 printed "Embree error 4: out of memory" and hung. Every
+# command that takes --threads refuses a count above the limit (65536, as backlight.set_threads);
+# the limit itself still runs.
+expect_error_timed threads_huge_render "--threads" "thread count 1000000000 exceeds the limit of 65536" -- \
+  render "$small" -o o.exr --spp 1 -q --threads 1000000000
+expect_error_timed threads_huge_grad "--threads" "exceeds the limit of 65536" -- \
+  grad "$small" --spp 1 --target t16.exr --out g_threads -q --threads 65537
+expect_error_timed threads_huge_check "--threads" "exceeds the limit of 65536" -- \
+  check "$small" --spp 1 --target t16.exr --param light.radiance --threads 1000000000
+expect_error_timed threads_huge_params "--threads" "exceeds the limit of 65536" -- params "$small" -q --threads 1000000000
+expect_error_timed threads_huge_optimize "--threads" "exceeds the limit of 65536" -- \
+  optimize small/opt.json -q --threads 1000000000
+threads_at_limit() {
+  expect_ok threads_at_limit render "$small" -o threads_limit.exr --spp 1 -q --threads 65536 ||
+    fail "render --threads 65536 (the limit) failed"
+}
+in_background threads_at_limit
+
 # Integer flags take decimal digits (and a '-' where negatives mean something): CLI11 read 0x10
 # as 16 and 010 as 8 (octal), took " 16", and refused 1e1 with "Could not convert", while
 # --seed refused 0x1F. One message for all: the flag, the value and what it should be.
@@ -1324,7 +1351,7 @@ wait
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
 [ ! -e "$bad/out-must-not-exist" ] || fail "a config in tests/data/bad created its output folder"
 for d in small/cfg_out_*; do [ ! -e "$d" ] || fail "a config error left its output folder $d"; done
-for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9 g_err10 g_int; do
+for d in g_err1 g_err2 g_err3 g_err4 g_err5 g_err6 g_err7 g_err8 g_err9 g_err10 g_threads g_int; do
   [ ! -e "$d" ] || fail "an error case created output directory $d"
 done
 
