@@ -443,9 +443,13 @@ void apply_override(Scene& scene, const std::string& assignment) {
     throw InputError("--set " + name + ": '" + rhs.substr(0, 120) + (rhs.size() > 120 ? "...'" : "'") +
                      " is not a usable file name (" + ec.message() + ")");
   if (numeric) {
-    std::stringstream ss(rhs);
-    std::string item;
-    while (numeric && std::getline(ss, item, ',')) {
+    // Every item between commas, the one after a last comma too: getline dropped it, so that
+    // "0.5,0.5,0.5," (an item missing, or a comma too many) was taken as three numbers.
+    for (size_t begin = 0; numeric && begin <= rhs.size();) {
+      size_t comma = rhs.find(',', begin);
+      if (comma == std::string::npos) comma = rhs.size();
+      const std::string item = rhs.substr(begin, comma - begin);
+      begin = comma + 1;
       char* end = nullptr;
       float v = std::strtof(item.c_str(), &end);
       while (end && *end == ' ') ++end;

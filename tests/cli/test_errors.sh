@@ -1346,6 +1346,16 @@ int_decimal() {
 }
 in_background int_decimal
 
+# --set lists: a trailing comma was dropped without a word (an item missing, or one too many
+# typed); an empty item anywhere is named.
+expect_error set_trailing_comma "--set white.albedo" "'0.5,0.5,0.5,'" "neither numbers nor" -- \
+  render "$small" --set white.albedo=0.5,0.5,0.5, -o o.exr -q
+expect_error set_leading_comma "--set white.albedo" "neither numbers nor" -- \
+  render "$small" --set white.albedo=,0.5,0.5,0.5 -o o.exr -q
+expect_error set_trailing_commas "--set white.albedo" "neither numbers nor" -- \
+  render "$small" --set white.albedo=0.5,0.5,0.5,, -o o.exr -q
+expect_error set_only_comma "--set light.radiance" "neither numbers nor" -- render "$small" --set light.radiance=, -o o.exr -q
+
 wait
 # Error cases write nothing.
 for f in o.exr o.bmp; do [ ! -e "$f" ] || fail "an error case wrote $f"; done
