@@ -34,6 +34,24 @@ std::vector<std::string> tokens_of(const std::string& line) {
   return out;
 }
 
+// The text without its comments: '#' to the end of a line, on any line ("f 1 2 3 # top"). Files
+// written by hand put them after data; tinyobjloader and the checks below took only whole comment
+// lines and refused such a face ("'#' is not a face vertex"). Line ends stay, so line numbers do.
+// One copying pass (erasing each comment in place would be quadratic in a file of many).
+std::string without_comments(const std::string& text) {
+  std::string out;
+  out.reserve(text.size());
+  bool comment = false;
+  for (const char c : text) {
+    if (c == '\n' || c == '\r')
+      comment = false;
+    else if (c == '#')
+      comment = true;
+    if (!comment) out.push_back(c);
+  }
+  return out;
+}
+
 // tinyobjloader reads what it cannot parse as 0 ("v nan 0 0", "v abc 0 0") and face indices with
 // atoi (an index past 2^31 wraps around to a valid vertex), so the numbers of the lines it reads
 // are checked first: v, vn and vt values are finite decimal numbers (its grammar: no nan, inf or
@@ -52,7 +70,7 @@ void check_obj_numbers(const std::string& path, const std::string& text) {
     const std::string where = "line " + std::to_string(line_number) + ": ";
     if (key == "v" || key == "vn" || key == "vt") {
       size_t values = 0;
-      for (size_t i = 1; i < tokens.size() && tokens[i][0] != '#'; ++i, ++values) {
+      for (size_t i = 1; i < tokens.size(); ++i, ++values) {
         const std::string& t = tokens[i];
         char* end = nullptr;
         const double v = std::strtod(t.c_str(), &end);
@@ -91,7 +109,7 @@ void check_obj_numbers(const std::string& path, const std::string& text) {
 }  // namespace
 
 Mesh read_obj(const std::string& path, bool flip_tex_coords) {
-  const std::string text = read_input_file(path);
+  const std::string text = without_comments(read_input_file(path));
   check_obj_numbers(path, text);
   tinyobj::ObjReaderConfig config;
   config.triangulate = false;  // fans below: tinyobjloader's polygon triangulation trusts its input

@@ -242,6 +242,38 @@ TEST_CASE("OBJ and PLY readers: polygons, relative indices, ASCII PLY, flipped t
   CHECK(scene->meshes[2].triangle_count() == 64 * 32 * 2 - 2 * 64);
 }
 
+TEST_CASE("OBJ comments end any line", "[xml][mesh]") {
+  // '#' to the end of a line is a comment after data too, as files written by hand put them: a
+  // face with one was refused ("'#' is not a face vertex").
+  const std::string dir = test::temp_dir("xml-obj-comments");
+  write(dir, "commented.obj",
+        "# whole line\r\no quad # named\nv 0 0 0 # origin\nv 1 0 0#x\nv 1 1 0\nv 0 1 0\nvt 0 0 # uv\n"
+        "vn 0 0 1 # up\ng # no name\nusemtl m # ignored\nf 1 2 3 # tri\nf 1 3 4# another\nf 1//1 2//1 3//1 #\n"
+        "# f 7 8 9\n");
+  const Mesh m = read_obj(dir + "/commented.obj", true);
+  CHECK(m.triangle_count() == 3);
+  CHECK(m.positions.size() == 4);
+  CHECK(m.positions[1].x == 1.f);
+  // Errors are found as before, with line numbers that count the lines of comments.
+  const std::pair<const char*, const char*> cases[] = {
+      {"# a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 # 3\n", "line 5: a face needs at least 3 vertices, not 2"},
+      {"v 0 0 0\r\nv 1 0 # 0\nv 0 1 0\nf 1 2 3\n", "line 2: a 'v' line needs 3 values"},
+      {"v 0 0 0 # a\nv 1 0 0\nv 0 1 0\nf 1 2 3x # b\n", "line 4: '3x' is not a face vertex"},
+      {"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 7 # past the end\n", "face refers to vertex 7"},
+      {"v 0 0 0 # f 1 2 3\n", "no faces"},
+  };
+  for (const auto& [text, message] : cases) {
+    INFO(text);
+    write(dir, "bad.obj", text);
+    try {
+      read_obj(dir + "/bad.obj", true);
+      FAIL("no error");
+    } catch (const InputError& e) {
+      CHECK_THAT(e.what(), Catch::Contains(message) && Catch::Contains("bad.obj"));
+    }
+  }
+}
+
 TEST_CASE("bad meshes are one-line errors naming the file", "[xml][mesh]") {
   const std::string dir = test::temp_dir("xml-badmesh");
   const std::pair<const char*, const char*> cases[] = {
