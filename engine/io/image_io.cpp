@@ -21,6 +21,7 @@
 #include <fstream>
 #include <regex>
 #include <set>
+#include <utility>
 
 #include "engine/core/errors.h"
 #include "engine/core/limits.h"
@@ -644,25 +645,33 @@ void commit(const std::string& tmp, const std::string& path) {
 
 // Portable float map: "PF" (RGB) or "Pf" (grey), width and height, a negative scale for
 // little-endian data, then rows from the bottom up.
+// Written with stdio, whose failing call leaves errno: the cause is named ("write failed (No space
+// left on device)"), as the EXR and PNG writers do; an ofstream's failbit said only "write failed".
 void write_pfm(const std::string& tmp, const std::string& path, const Image& image) {
   const bool grey = image.channels == 1;
-  std::ofstream f(tmp, std::ios::binary);
-  if (!f) throw file_error(path, "cannot open for writing");
-  f << (grey ? "Pf" : "PF") << "\n" << image.width << " " << image.height << "\n-1.0\n";
+  std::FILE* f = std::fopen(tmp.c_str(), "wb");
+  if (!f) throw file_error(path, std::string("cannot open for writing (") + std::strerror(errno) + ")");
+  const std::string header = std::string(grey ? "Pf" : "PF") + "\n" + std::to_string(image.width) + " " +
+                             std::to_string(image.height) + "\n-1.0\n";
   static_assert(std::endian::native == std::endian::little, "PFM is written as little-endian floats");
   std::vector<float> row(size_t(image.width) * (grey ? 1 : 3));
-  for (int y = image.height - 1; y >= 0; --y) {
+  bool ok = std::fwrite(header.data(), 1, header.size(), f) == header.size();
+  for (int y = image.height - 1; ok && y >= 0; --y) {
     for (int x = 0; x < image.width; ++x)
       for (int c = 0; c < (grey ? 1 : 3); ++c)
         row[size_t(x) * (grey ? 1 : 3) + size_t(c)] = image.at(x, y, std::min(c, image.channels - 1));
-    f.write(reinterpret_cast<const char*>(row.data()), std::streamsize(row.size() * sizeof(float)));
+    ok = std::fwrite(row.data(), sizeof(float), row.size(), f) == row.size();
   }
-  f.flush();
-  if (!f) {
-    f.close();
+  ok = ok && std::fflush(f) == 0;
+  const int error = ok ? 0 : errno;
+  // close reports what a delayed write found (NFS, a quota).
+  const bool closed = std::fclose(f) == 0;
+  const int close_error = closed ? 0 : errno;
+  if (!ok || !closed) {
     std::error_code ec;
     fs::remove(tmp, ec);
-    throw file_error(path, "write failed");
+    const int cause = ok ? close_error : error;
+    throw file_error(path, "write failed" + (cause ? std::string(" (") + std::strerror(cause) + ")" : std::string()));
   }
 }
 
@@ -698,6 +707,7 @@ struct PngWrite {
   png_structp png = nullptr;
   png_infop info = nullptr;
   char error[256] = "";
+  int error_errno = 0;  // errno when libpng failed: its fwrite's ("Write Error") names no cause
   ~PngWrite() {
     if (png) png_destroy_write_struct(&png, info ? &info : nullptr);
     if (file) std::fclose(file);
@@ -705,6 +715,7 @@ struct PngWrite {
 };
 void png_on_write_error(png_structp png, png_const_charp message) {
   auto* w = static_cast<PngWrite*>(png_get_error_ptr(png));
+  w->error_errno = errno;
   std::snprintf(w->error, sizeof(w->error), "%s", message);
   png_longjmp(png, 1);
 }
@@ -737,7 +748,16 @@ void write_png(const std::string& tmp, const std::string& path, const Image& ima
     if (w.png) w.info = png_create_info_struct(w.png);
     ok = w.png && w.info && png_write_rows(&w, image.width, image.height, image.channels, rows.data());
     error = w.error;
-    ok = std::fflush(w.file) == 0 && !std::ferror(w.file) && ok;
+    // The cause of a failed write (a full disk: "No space left on device"): errno of libpng's
+    // failed fwrite, or of the flush and close of what stdio still held.
+    int cause = std::ferror(w.file) ? w.error_errno : 0;
+    if (std::fflush(w.file) != 0 && !cause) cause = errno;
+    ok = ok && !std::ferror(w.file);
+    if (std::fclose(std::exchange(w.file, nullptr)) != 0) {
+      ok = false;
+      if (!cause) cause = errno;
+    }
+    if (!ok && cause) error += (error.empty() ? "" : ": ") + std::string(std::strerror(cause));
   }
   if (!ok) {
     std::error_code ec;
