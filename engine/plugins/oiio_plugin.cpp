@@ -5,7 +5,11 @@
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
 #include <memory>
+#include <vector>
 
 #include "engine/plugins/plugin_api.h"
 
@@ -73,12 +77,21 @@ void close_image(void* reader) {
   delete r;
 }
 
+// Encoded in memory, then written here: OpenImageIO's HDR writer let a failed write of its last
+// buffer pass (a full disk left a cut .hdr and exit 0), and libjpeg's exit()ed the process
+// ("Output file write error --- out of disk space?", exit 1, its temporary file left).
 bool write_image(const std::string& path, int width, int height, int channels, const float* floats,
                  const unsigned char* bytes, std::string* error) {
+  std::vector<unsigned char> encoded;
   try {
     auto out = ImageOutput::create(path);
     if (!out) {
       *error = "cannot create image writer";
+      return false;
+    }
+    Filesystem::IOVecOutput memory(encoded);
+    if (!out->set_ioproxy(&memory)) {
+      *error = "cannot encode in memory (" + first_line(out->geterror()) + ")";
       return false;
     }
     ImageSpec spec(width, height, channels, floats ? TypeDesc::FLOAT : TypeDesc::UINT8);
@@ -88,12 +101,27 @@ bool write_image(const std::string& path, int width, int height, int channels, c
     }
     bool ok = floats ? out->write_image(TypeDesc::FLOAT, floats) : out->write_image(TypeDesc::UINT8, bytes);
     ok = out->close() && ok;
-    if (!ok) *error = "write failed";
-    return ok;
+    if (!ok) {
+      *error = "write failed (" + first_line(out->geterror()) + ")";
+      return false;
+    }
   } catch (const std::exception& e) {
     *error = std::string("write failed (") + e.what() + ")";
     return false;
   }
+  std::FILE* f = std::fopen(path.c_str(), "wb");
+  if (!f) {
+    *error = std::string("cannot open for writing (") + std::strerror(errno) + ")";
+    return false;
+  }
+  bool ok = std::fwrite(encoded.data(), 1, encoded.size(), f) == encoded.size() && std::fflush(f) == 0;
+  int cause = ok ? 0 : errno;
+  if (std::fclose(f) != 0 && ok) {
+    ok = false;
+    cause = errno;
+  }
+  if (!ok) *error = std::string("write failed (") + std::strerror(cause) + ")";
+  return ok;
 }
 
 const bl::plugin::OiioApi api = {bl::plugin::kPluginAbi, open_image, read_image, close_image, write_image};
