@@ -840,19 +840,21 @@ void write_text_atomic(const std::string& path, const std::string& text) {
   write_bytes_atomic(path, text.data(), text.size());
 }
 
+// With stdio, as write_pfm: a failed write names its cause (an ofstream said only "write failed").
 void write_bytes_atomic(const std::string& path, const void* data, size_t size) {
   const std::string tmp = temp_name(path);
-  {
-    std::ofstream f(tmp, std::ios::binary);
-    if (!f) throw file_error(path, "cannot open for writing");
-    f.write(static_cast<const char*>(data), std::streamsize(size));
-    f.flush();
-    if (!f) {
-      f.close();
-      std::error_code ec;
-      fs::remove(tmp, ec);
-      throw file_error(path, "write failed");
-    }
+  std::FILE* f = std::fopen(tmp.c_str(), "wb");
+  if (!f) throw file_error(path, std::string("cannot open for writing (") + std::strerror(errno) + ")");
+  bool ok = std::fwrite(data, 1, size, f) == size && std::fflush(f) == 0;
+  int cause = ok ? 0 : errno;
+  if (std::fclose(f) != 0 && ok) {
+    ok = false;
+    cause = errno;
+  }
+  if (!ok) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw file_error(path, "write failed" + (cause ? std::string(" (") + std::strerror(cause) + ")" : std::string()));
   }
   commit(tmp, path);
 }

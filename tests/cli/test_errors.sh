@@ -1375,6 +1375,21 @@ write_limit() {  # write_limit NAME: renders NAME (over an older one) under ulim
   [ -z "$(find . -maxdepth 1 -name ".${name%.*}.tmp*")" ] || fail "write_limit $name: temporaries left"
 }
 for ext in pfm png exr hdr jpg; do in_background write_limit "limit_$ext.$ext"; done
+# Text outputs the same (JSON, CSV, checkpoints' raw values: "write failed" without a cause): the
+# params.json of a dump of a scene without textures.
+text_write_limit() {
+  local scene; scene="$(v notex 's["materials"]["wall"]["albedo"] = 0.5')"
+  local rc=0 err
+  err="$( (trap '' XFSZ; ulimit -f 0; "$bin" params "$scene" --dump limit_dump -q 2>&1 >/dev/null) )" || rc=$?
+  [ "$rc" -eq 2 ] || fail "text_write_limit: exit $rc, expected 2: $err"
+  case "$err" in
+    "backlight: limit_dump/params.json: write failed (File too large)") ;;
+    *) fail "text_write_limit: $err" ;;
+  esac
+  [ -z "$(find limit_dump -name '.*.tmp*')" ] || fail "text_write_limit: temporaries left"
+}
+mkdir -p limit_dump
+in_background text_write_limit
 
 wait
 # Error cases write nothing.
