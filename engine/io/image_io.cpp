@@ -859,6 +859,25 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size) 
   commit(tmp, path);
 }
 
+void sync_path(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) throw file_error(path, std::string("cannot open to flush it to disk (") + std::strerror(errno) + ")");
+  const int failed = ::fsync(fd) != 0 ? errno : 0;
+  ::close(fd);
+  // EINVAL: a file system that cannot sync this kind of file (some do not sync folders); nothing
+  // more can be done there, and the write itself has succeeded.
+  if (failed && failed != EINVAL)
+    throw file_error(path, std::string("cannot flush to disk (") + std::strerror(failed) + ")");
+}
+
+void sync_folder(const std::string& dir) {
+  std::error_code ec;
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec))
+    if (it->is_regular_file(ec)) sync_path(it->path().string());
+  if (ec) throw file_error(dir, "cannot list it to flush it to disk (" + ec.message() + ")");
+  sync_path(dir);
+}
+
 bool process_gone(const std::string& digits) {
   if (digits.empty() || digits.find_first_not_of("0123456789") != std::string::npos) return false;
   if (digits.size() > 9) return true;  // beyond any pid

@@ -51,6 +51,13 @@ void write_image(const std::string& path, const Image& image, bool encode_srgb =
 void write_text_atomic(const std::string& path, const std::string& text);
 // The same for raw bytes, written straight from `data` (no copy).
 void write_bytes_atomic(const std::string& path, const void* data, size_t size);
+// Flushes the regular files directly in `dir`, then `dir` itself, to the disk (fsync): the atomic
+// writes above survive a kill (old file or new, never a cut one), but after a power cut a file
+// renamed into place may come back empty unless its data reached the disk before the rename.
+// An optimize checkpoint calls it before its directory swap. One line naming `dir` on failure.
+void sync_folder(const std::string& dir);
+// fsync of one file or folder (`path`), one line naming it on failure.
+void sync_path(const std::string& path);
 // Deletes, under `dir` (recursively, or only in `dir` itself), the temporaries that
 // write_image/write_text_atomic of another process left behind when it was killed before its
 // rename: names ".<stem>.tmp<pid>.<ext>" whose stem matches `stem` (a regular expression) and

@@ -1641,6 +1641,9 @@ class Job {
     }
     // state.json is written last: a checkpoint directory is complete exactly when it has one.
     write_text_atomic(tmp + "/state.json", state.dump(1));
+    // On the disk before the swap: after a power cut the renames below may have happened while
+    // the files' data had not, leaving an empty state.json in checkpoint/ and no checkpoint.old/.
+    sync_folder(tmp);
     crash_point("checkpoint-written");
     // Swap directories without a gap: at every moment checkpoint/ or checkpoint.old/ is complete.
     // checkpoint.old/ is deleted only while checkpoint/ is complete (after a resume from
@@ -1655,6 +1658,7 @@ class Job {
       remove_checkpoint_dir(final_dir);  // an incomplete leftover, if any
     }
     fs::rename(tmp, final_dir);
+    sync_path(c_.output);  // the renames themselves
     crash_point("tmp-renamed");
     remove_checkpoint_dir(old);
   }

@@ -155,5 +155,38 @@ code=$?
 "$bin" optimize fresh8.json --threads 1 --quiet 2>> out.log || fail "a fresh start after the crashes failed"
 [ -f fresh/summary.json ] && [ -f fresh/final/floor.albedo.exr ] || fail "the fresh start did not finish"
 for f in $mine; do [ -f "fresh/$f" ] || fail "a fresh start removed $f"; done
+# 6. Checkpoints are on the disk before they are swapped in (a power cut, which no kill can stand
+# for, could otherwise leave checkpoint/ with empty files and no checkpoint.old/): strace shows,
+# before every rename of checkpoint.tmp/ to checkpoint/, an fsync of each of its files and of the
+# folder, and after it one of the output folder.
+strace -f -o /dev/null true 2> /dev/null || fail "strace cannot trace here (tools/deps installs it)"
+strace -f -y -qq -e trace=fsync,rename,renameat,renameat2 -o trace.log \
+  "$bin" optimize ref.json --threads 1 --quiet 2>> out.log || fail "the traced run failed: $(tail -n 1 out.log)"
+python3 - "$dir/ref" trace.log <<'PY' || fail "checkpoint writes are not flushed before their swap (the lines above)"
+import re, sys
+out, lines = sys.argv[1], open(sys.argv[2]).read().splitlines()
+synced, swaps, bad = set(), 0, []
+for i, line in enumerate(lines):
+    m = re.search(r"fsync\(\d+<([^>]*)>\) = 0", line)
+    if m:
+        synced.add(m.group(1))
+        continue
+    m = re.search(r'rename\w*\(.*"([^"]*checkpoint\.tmp)", .*"([^"]*/checkpoint)"', line)
+    if not m:
+        continue
+    swaps += 1
+    tmp = m.group(1)
+    files = [p for p in synced if p.startswith(out + "/checkpoint.tmp/")]
+    if out + "/checkpoint.tmp" not in synced: bad.append("swap %d: the folder was not flushed" % swaps)
+    if not any(p.endswith("/state.json") for p in files): bad.append("swap %d: state.json was not flushed" % swaps)
+    if not any(p.endswith(".value") for p in files): bad.append("swap %d: the values were not flushed" % swaps)
+    after = [l for l in lines[i + 1:i + 40] if re.search(r"fsync\(\d+<%s>\) = 0" % re.escape(out), l)]
+    if not after: bad.append("swap %d: the output folder was not flushed after it" % swaps)
+    synced = set()
+if swaps != 8: bad.append("%d checkpoint swaps traced, expected 8" % swaps)
+for b in bad: print(b)
+sys.exit(1 if bad else 0)
+PY
 echo "ok: 8 injected crashes and 3 kill -9, resumed to the uninterrupted result; a crash inside the target cache;" \
-  "a fresh start over a finished folder, removing its outputs, killed in and after that clean-up"
+  "a fresh start over a finished folder, removing its outputs, killed in and after that clean-up;" \
+  "checkpoints flushed to disk before their swap (8 traced)"
