@@ -197,13 +197,18 @@ int cmd_params(SceneFlags& f, bool as_json, const std::string& dump) {
   const auto& params = scene->params;
   if (as_json) {
     nlohmann::json arr = nlohmann::json::array();
-    for (size_t i = 0; i < params.count(); ++i)
-      arr.push_back({{"name", params[int(i)].name}, {"shape", params[int(i)].shape}, {"size", params[int(i)].size()}});
+    for (size_t i = 0; i < params.count(); ++i) {
+      const Param& p = params[int(i)];
+      arr.push_back({{"name", p.name}, {"shape", p.shape}, {"size", p.size()}, {"lower", p.lower}, {"upper", p.upper}});
+    }
     std::cout << arr.dump(1) << "\n";
   } else {
-    for (size_t i = 0; i < params.count(); ++i)
-      std::printf("%-32s %-16s %zu\n", params[int(i)].name.c_str(), params.shape_string(int(i)).c_str(),
-                  params[int(i)].size());
+    // The valid range too: what a --set, an init or the optimizer's projection must keep to.
+    for (size_t i = 0; i < params.count(); ++i) {
+      const Param& p = params[int(i)];
+      std::printf("%-32s %-16s %-10zu [%g, %g]\n", p.name.c_str(), params.shape_string(int(i)).c_str(), p.size(),
+                  double(p.lower), double(p.upper));
+    }
   }
   if (!dump.empty() && dist::is_root()) {
     ensure_output_folder(dump);
@@ -228,7 +233,9 @@ struct GradFlags {
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--adjoint-seed", adjoint_seed, "Seed of the adjoint pass (default: --seed, the exact derivative)")
         ->transform(kSeed);
-    app->add_option("--param", params, "Parameter to differentiate (repeatable; default: all)");
+    app->add_option("--param", params,
+                    "Parameter to differentiate (repeatable; default: every appearance parameter, not the geometry's "
+                    "translate/rotate/scale/positions or cameras, which are differentiated when named)");
     app->add_option("--memory-budget", memory_budget,
                     "Taped mode: limit on the tape and its sweep's adjoints (20 bytes per recorded operation, "
                     "checked every 8 samples), e.g. 512MB or 4GB (default 80% of RAM or of a lower cgroup limit)");
@@ -407,11 +414,22 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   if (verdict.nothing_compared) {
     std::printf(
         "nothing compared: neither the adjoint nor the renders change with '%s' in %zu direction(s) (it does "
-        "not reach this image, or sits where no derivative is estimated: a density or albedo at exactly 0, "
-        "README \"Zero factors\")\n",
+        "not reach this image, or sits where no derivative is estimated: a density at exactly 0, README \"Zero "
+        "factors\")\n",
         c.param.c_str(), rows.size());
     return 1;
   }
+  // An albedo at exactly (0, 0, 0) ends its paths, so no gradient is estimated there, while the
+  // finite differences step off 0 and the renders change: a FAIL whose cause the table does not say.
+  const bool zero_adjoint = std::all_of(rows.begin(), rows.end(), [](const CheckRow& r) { return r.adjoint == 0; });
+  auto zero_note = [&] {
+    if (!verdict.passed && zero_adjoint)
+      std::fprintf(stderr,
+                   "note: the adjoint is 0 in every direction while the renders change: '%s' sits where no "
+                   "derivative is estimated (an albedo at exactly (0, 0, 0) ends its paths, README \"Zero "
+                   "factors\"); start it off 0, e.g. bounds [0.001, 1]\n",
+                   c.param.c_str());
+  };
   if (c.seeds == 1) {
     std::printf("%-4s %16s %16s %12s %12s\n", "dir", "adjoint", "finite_diff", "rel_error", "error/rms");
     for (size_t i = 0; i < rows.size(); ++i)
@@ -419,6 +437,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
                   rows[i].relative_error, rows[i].rms_relative_error, verdict.ok[i] ? "" : "  FAIL");
     std::printf("%s: %zu direction(s), |adjoint − finite_diff| ≤ %.3g × the RMS of finite_diff over the directions\n",
                 verdict.passed ? "ok" : "FAILED", rows.size(), c.tolerance);
+    zero_note();
     return verdict.passed ? 0 : 1;
   }
   // Over seeds: means with their standard errors, and z of the paired differences, against the
@@ -441,6 +460,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
       "(an adjoint off by a factor 1 + r fails for |r| above it)%s\n",
       100 * verdict.resolution_overall,
       verdict.resolution_overall > 0.25 ? " (more --seeds or --spp to tighten it below 25%)" : "");
+  zero_note();
   if (verdict.inconclusive) return 1;
   return verdict.passed ? 0 : 1;
 }
@@ -491,7 +511,7 @@ int run(int argc, char** argv) {
   std::string dump;
   auto* params_cmd = app.add_subcommand("params", "List the scene's differentiable parameters");
   params_flags.add_to(params_cmd);
-  params_cmd->add_flag("--json", as_json, "Print a JSON array of {name, shape, size}");
+  params_cmd->add_flag("--json", as_json, "Print a JSON array of {name, shape, size, lower, upper}");
   params_cmd->add_option("--dump", dump,
                          "Write every value: image-shaped ones as DIR/<name>.exr, the rest in DIR/params.json");
 

@@ -972,13 +972,20 @@ arr = json.load(open(sys.argv[1]))
 assert isinstance(arr, list) and arr, arr
 names = set()
 for e in arr:
-    assert set(e) >= {"name", "shape", "size"}, e
+    assert set(e) >= {"name", "shape", "size", "lower", "upper"}, e
     assert e["size"] == math.prod(e["shape"]), e
+    assert e["lower"] <= e["upper"], e
     names.add(e["name"])
 assert {"wall.albedo", "light.radiance", "metal.roughness"} <= names, names
 wall = [e for e in arr if e["name"] == "wall.albedo"][0]
 assert wall["shape"] == [1024, 1024, 3], wall
+assert (wall["lower"], wall["upper"]) == (0, 1), wall  # an albedo's valid range (README: Optimization config)
+rough = [e for e in arr if e["name"] == "metal.roughness"][0]
+assert rough["lower"] == 0 and rough["upper"] >= 1, rough
 PY
+  expect_ok params_text params "$cornell" || return
+  grep -Eq "^wall\.albedo +\[1024, ?1024, ?3\] +3145728 +\[0, 1\]$" out.params_text ||
+    fail "params: no valid range on the wall.albedo line: $(grep wall.albedo out.params_text)"
 }
 in_background good_params_json
 good_params_dump() {
@@ -1177,6 +1184,18 @@ check_nothing_compared() {
     fail "check of a camera that is not rendered printed: $(cat out.nothing)"
 }
 in_background check_nothing_compared
+# An albedo at exactly (0, 0, 0) gets no gradient (README "Zero factors") while its finite
+# differences step off 0: FAIL, exit 1, with a note saying why (helper-48: the table alone showed an
+# adjoint of 0 in every direction, and the "nothing compared" message named albedos as a cause).
+check_zero_albedo() {
+  local rc=0
+  "$bin" check "$small" --spp 1 --rr-depth 0 --target t16.exr --set white.albedo=0 --param white.albedo \
+    >out.zero_albedo 2>err.zero_albedo || rc=$?
+  [ "$rc" -eq 1 ] && grep -q "^FAILED" out.zero_albedo &&
+    grep -q "^note: the adjoint is 0 in every direction while the renders change: 'white.albedo'" err.zero_albedo ||
+    fail "check of an albedo at 0: exit $rc: $(cat out.zero_albedo err.zero_albedo)"
+}
+in_background check_zero_albedo
 # check --seeds: a pass that could not have seen a 25% error is INCONCLUSIVE, exit 1 (helper-39: a
 # sign error passed 16 seeds; two seeds accept |z| up to 10050, Student's t of the 4σ tail).
 check_inconclusive() {
