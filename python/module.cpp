@@ -784,7 +784,9 @@ PYBIND11_MODULE(_backlight, m) {
       py::arg("scene"), py::arg("d_image"), py::kw_only(), py::arg("method") = "prb", py::arg("spp") = py::none(),
       py::arg("seed") = py::none(), py::arg("adjoint_seed") = py::none(), py::arg("camera") = 0,
       py::arg("resolution") = py::none(), py::arg("params") = py::none(),
-      "Gradient of sum(d_image * render(scene)) with respect to the parameters (all, or the names in params): "
+      "Gradient of sum(d_image * render(scene)) with respect to the parameters (the names in params; by "
+      "default every appearance parameter — materials, textures, emitters, media — not the geometry's poses, "
+      "positions and cameras, which are differentiated when named): "
       "{name: float32 array shaped like the parameter}. d_image: float32 (height, width, 3). With adjoint_seed "
       "equal to seed (the default) it is the exact derivative of the image render(seed=seed) returns for emission, "
       "and for albedos and textures with Russian roulette off (load(..., rr_depth=0): roulette's continuation "
