@@ -4,7 +4,9 @@ space at three scales (an average-pooled image pyramid), plus a torch-side prior
 is an ordinary torch tensor, so any differentiable torch code can follow backlight.torch.render.
 
 Fits the light's radiance and the plastic box's albedo of scenes/cornell to a target rendered
-with other values, looking only at the lower half of the image (the box and the floor).
+with other values, looking only at the lower half of the image (the box and the floor). Writes
+OUT/compare.png (target | first iteration | last, the mask's edge marked) and OUT/loss.png
+(python3-matplotlib).
 
     PYTHONPATH=build/python python3 python/examples/torch_masked_loss.py [--out DIR] [--quick]
 """
@@ -57,6 +59,7 @@ def pyramid_log_loss(image):
 
 
 start = time.perf_counter()
+losses, first_image = [], None
 for it in range(1, args.iterations + 1):
     optimizer.zero_grad()
     image = backlight.torch.render(scene, params, spp=8, seed=it, resolution=res)
@@ -68,8 +71,9 @@ for it in range(1, args.iterations + 1):
     with torch.no_grad():
         params["plastic.albedo"].clamp_(0.0, 1.0)
         params["light.radiance"].clamp_(min=0.0)
+    losses.append(float(loss))
     if it == 1:
-        first = float(loss)
+        first, first_image = float(loss), image.detach()
     elapsed = time.perf_counter() - start
     print(f"\riteration {it}/{args.iterations}, loss {float(loss):.4f}, {it / elapsed:.1f} it/s, "
           f"ETA {elapsed / it * (args.iterations - it):.0f} s", end="", file=sys.stderr, flush=True)
@@ -77,3 +81,25 @@ print(file=sys.stderr)
 print(f"loss {first:.4f} -> {float(loss):.4f} in {time.perf_counter() - start:.1f} s")
 for name, value in params.items():
     print(f"{name}: {[round(v, 3) for v in value.detach().tolist()]} (target {truth[name]})")
+try:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 3, figsize=(9, 3.4))
+    for ax, (title, img) in zip(axes, [("target", target), ("iteration 1", first_image),
+                                       (f"iteration {args.iterations}", image.detach())]):
+        ax.imshow((img.clamp(min=0) ** (1 / 2.2)).clamp(max=1).numpy())  # gamma 2.2 for display
+        ax.axhline(res[1] / 2 - 0.5, color="orange", lw=1)  # the loss sees the pixels below this line
+        ax.set_title(title)
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(os.path.join(args.out, "compare.png"), dpi=100)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.semilogy(range(1, len(losses) + 1), losses)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("masked log-space pyramid loss (8 spp, noisy)")
+    ax.set_title("Cornell light and box albedo through backlight.torch.render")
+    fig.tight_layout()
+    fig.savefig(os.path.join(args.out, "loss.png"), dpi=100)
+except ImportError:
+    print("python3-matplotlib missing: no compare.png or loss.png", file=sys.stderr)

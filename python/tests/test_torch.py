@@ -339,3 +339,7 @@ def test_examples_run(example, tmp_path):
                        timeout=300)
     assert r.returncode == 0, r.stderr
     assert "loss" in r.stdout
+    # Results people look at are pictures (python3-matplotlib is a dependency, tools/deps).
+    pictures = ["loss.png"] + (["compare.png"] if example == "torch_masked_loss.py" else [])
+    for name in pictures:
+        assert (tmp_path / name).stat().st_size > 0, name
