@@ -1902,10 +1902,13 @@ class Job {
                                          grid_sheet(view_of(param), vmax)}));
         }
         summary["parameters"][p.name] = {
-            {"rmse_initial", before},
-            {"rmse_final", after},
-            {"rmse_reduction", after > 0 ? before / after : 0.0},
-            {"rmse_resolution", is_grid(gt) ? json{gt.shape[2], gt.shape[1], gt.shape[0]} : json{w, h}}};
+            {"rmse_initial", before}, {"rmse_final", after}, {"rmse_reduction", after > 0 ? before / after : 0.0}};
+        // Images are compared resampled to a resolution, grids at the truth's; other parameters
+        // (vectors, a mesh's positions) value by value, at no resolution (a mesh said "at 1x1").
+        if (is_grid(gt))
+          summary["parameters"][p.name]["rmse_resolution"] = {gt.shape[2], gt.shape[1], gt.shape[0]};
+        else if (param.is_image())
+          summary["parameters"][p.name]["rmse_resolution"] = {w, h};
         if (!p.mesh_indices.empty()) {
           const double d0 = surface_distance(initial.value, gt.value, p.mesh_indices),
                        d1 = surface_distance(param.value, gt.value, p.mesh_indices);
@@ -1944,8 +1947,10 @@ class Job {
     for (auto it = summary["parameters"].begin(); summary.contains("parameters") && it != summary["parameters"].end();
          ++it) {
       std::string at;
-      for (const auto& d : it.value()["rmse_resolution"]) at += (at.empty() ? "" : "x") + std::to_string(d.get<int>());
-      std::fprintf(stderr, "optimize: %s RMSE vs ground truth %.4f -> %.4f (%.1fx) at %s\n", it.key().c_str(),
+      if (it.value().contains("rmse_resolution"))
+        for (const auto& d : it.value()["rmse_resolution"])
+          at += (at.empty() ? " at " : "x") + std::to_string(d.get<int>());
+      std::fprintf(stderr, "optimize: %s RMSE vs ground truth %.4f -> %.4f (%.1fx)%s\n", it.key().c_str(),
                    it.value()["rmse_initial"].get<double>(), it.value()["rmse_final"].get<double>(),
                    it.value()["rmse_reduction"].get<double>(), at.c_str());
       if (it.value().contains("surface_distance")) {

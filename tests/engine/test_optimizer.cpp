@@ -181,6 +181,7 @@ TEST_CASE("a tiny optimization cuts the loss at least 10x", "[optimizer]") {
   CHECK(first / last >= 10.0);
   CHECK(summary["parameters"]["floor.albedo"]["rmse_final"].get<double>() <
         summary["parameters"]["floor.albedo"]["rmse_initial"].get<double>() / 3);
+  CHECK(summary["parameters"]["floor.albedo"]["rmse_resolution"] == nlohmann::json({16, 16}));
   // The validation loss (every 10 iterations by default, fixed seeds) falls cleanly.
   const double v0 = summary["validation_loss_initial"], v1 = summary["validation_loss_final"];
   INFO("validation loss " << v0 << " -> " << v1);
@@ -1160,6 +1161,8 @@ TEST_CASE("the bundled optimize configs are valid, and the deformation job runs 
   const auto summary = read_json(dir + "/out/summary.json");
   const auto& d = summary["parameters"]["blob.positions"]["surface_distance"];
   CHECK(d["initial"].get<double>() == Approx(0.0829).epsilon(0.01));  // sphere vs blob, measured in python too
+  // Positions are compared vertex by vertex, at no resolution (the summary said [1, 1]).
+  CHECK_FALSE(summary["parameters"]["blob.positions"].contains("rmse_resolution"));
   CHECK(d["final"].get<double>() < d["initial"].get<double>());
   // final/blob.ply: the optimized vertices, readable as the positions of the same mesh.
   auto scene = load_scene(root + "/scenes/deform/scene.json");
