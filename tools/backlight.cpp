@@ -89,7 +89,9 @@ struct SceneFlags {
     app->add_option("--max-depth", max_depth,
                     "Maximum path segments incl. the camera ray (Mitsuba 3's max_depth; -1 = unlimited)")
         ->transform(kInteger);
-    app->add_option("--rr-depth", rr_depth, "Russian roulette from this surface vertex on; 0 = off")->transform(kCount);
+    app->add_option("--rr-depth", rr_depth,
+                    "Russian roulette from this surface vertex on; 0 = off (default: the scene's)")
+        ->transform(kCount);
     app->add_option("--threads", threads, kThreadsHelp)->transform(kCount);
     app->add_flag("--quiet,-q", quiet, "No progress bar");
   }
@@ -265,7 +267,7 @@ struct CheckFlags {
                     "over the directions; exit 1 above it (default 1e-2)");
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
-    app->add_option("--direction-seed", direction_seed, "Seed of the random directions")->transform(kSeed);
+    app->add_option("--direction-seed", direction_seed, "Seed of the random directions (default 1)")->transform(kSeed);
     app->add_option(
            "--seeds", seeds,
            "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
