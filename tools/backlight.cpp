@@ -252,6 +252,7 @@ struct CheckFlags {
   int directions = 4, seeds = 1;
   double eps = 1e-2, tolerance = 1e-2;
   uint64_t direction_seed = 1;
+  std::optional<uint64_t> adjoint_seed;
   void add_to(CLI::App* app) {
     app->add_option("--target", target, "Target image of the loss");
     auto* adjoint =
@@ -268,6 +269,9 @@ struct CheckFlags {
     app->add_option("--method", method, "prb (default), rb or taped");
     app->add_option("--loss", loss, "l2 (default), l1 or rel_l2 (with --target)")->excludes(adjoint);
     app->add_option("--direction-seed", direction_seed, "Seed of the random directions (default 1)")->transform(kSeed);
+    app->add_option("--adjoint-seed", adjoint_seed,
+                    "Seed of the adjoint pass (default: --seed; with --seeds N, seed + k for the k-th, as the renders)")
+        ->transform(kSeed);
     app->add_option(
            "--seeds", seeds,
            "Average both sides over N render seeds (seed, seed+1, ...) and accept |z| of their paired "
@@ -346,6 +350,7 @@ int cmd_check(SceneFlags& f, const CheckFlags& c) {
   auto scene = f.load();
   Image target, adjoint;
   GradientRequest rq = make_request(f, *scene, c.method, c.loss, c.target, c.adjoint_image, target, adjoint);
+  if (c.adjoint_seed) rq.adjoint_seed = *c.adjoint_seed;  // as backlight.check's adjoint_seed
   if (c.directions < 1) throw InputError("--directions must be ≥ 1");
   limits::require_at_most("--directions", "direction count", uint64_t(c.directions), limits::kCheckDirections);
   if (!(c.eps > 0) || !std::isfinite(c.eps)) throw InputError("--eps must be a finite number > 0");

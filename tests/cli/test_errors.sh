@@ -1196,6 +1196,26 @@ check_zero_albedo() {
     fail "check of an albedo at 0: exit $rc: $(cat out.zero_albedo err.zero_albedo)"
 }
 in_background check_zero_albedo
+# check --adjoint-seed, as backlight.check's adjoint_seed (the CLI had none, helper-48): the
+# scene's seed gives the default table, another seed another adjoint column, the same finite
+# differences.
+check_adjoint_seed() {
+  local a
+  for a in none 0 5; do
+    "$bin" check "$small" --spp 1 --rr-depth 0 --target t16.exr --param white.albedo --directions 2 \
+      $([ $a = none ] || echo --adjoint-seed $a) >out.adjoint_seed_$a 2>/dev/null
+    [ -s out.adjoint_seed_$a ] || { fail "check --adjoint-seed $a printed nothing"; return; }
+  done
+  local seed
+  seed=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['integrator'].get('seed', 0))" "$small")
+  [ "$seed" = 0 ] || { fail "check_adjoint_seed: the small scene's seed is $seed, expected 0"; return; }
+  cmp -s out.adjoint_seed_none out.adjoint_seed_0 || fail "check --adjoint-seed of the scene's seed changed the table"
+  [ "$(awk 'NR>1 && NR<4 {print $2}' out.adjoint_seed_none)" != "$(awk 'NR>1 && NR<4 {print $2}' out.adjoint_seed_5)" ] ||
+    fail "check --adjoint-seed 5 left the adjoint column as it was"
+  [ "$(awk 'NR>1 && NR<4 {print $3}' out.adjoint_seed_none)" = "$(awk 'NR>1 && NR<4 {print $3}' out.adjoint_seed_5)" ] ||
+    fail "check --adjoint-seed 5 changed the finite differences"
+}
+in_background check_adjoint_seed
 # check --seeds: a pass that could not have seen a 25% error is INCONCLUSIVE, exit 1 (helper-39: a
 # sign error passed 16 seeds; two seeds accept |z| up to 10050, Student's t of the 4σ tail).
 check_inconclusive() {
