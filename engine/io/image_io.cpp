@@ -643,10 +643,28 @@ void commit(const std::string& tmp, const std::string& path) {
   }
 }
 
+// Flushes and closes `f`, the temporary `tmp` of `path` written with stdio (`written`: every write
+// succeeded); on any failure removes `tmp` and throws "write failed (<cause>)", the errno of the
+// failed write, flush or close (close reports what a delayed write found: NFS, a quota). An
+// ofstream's failbit said only "write failed".
+void finish_stdio_write(std::FILE* f, bool written, const std::string& tmp, const std::string& path) {
+  int cause = written ? 0 : errno;
+  bool ok = written && std::fflush(f) == 0;
+  if (written && !ok) cause = errno;
+  if (std::fclose(f) != 0 && ok) {
+    ok = false;
+    cause = errno;
+  }
+  if (ok) return;
+  std::error_code ec;
+  fs::remove(tmp, ec);
+  throw file_error(path, "write failed" + (cause ? std::string(" (") + std::strerror(cause) + ")" : std::string()));
+}
+
 // Portable float map: "PF" (RGB) or "Pf" (grey), width and height, a negative scale for
 // little-endian data, then rows from the bottom up.
 // Written with stdio, whose failing call leaves errno: the cause is named ("write failed (No space
-// left on device)"), as the EXR and PNG writers do; an ofstream's failbit said only "write failed".
+// left on device)"), as the EXR and PNG writers do.
 void write_pfm(const std::string& tmp, const std::string& path, const Image& image) {
   const bool grey = image.channels == 1;
   std::FILE* f = std::fopen(tmp.c_str(), "wb");
@@ -662,17 +680,7 @@ void write_pfm(const std::string& tmp, const std::string& path, const Image& ima
         row[size_t(x) * (grey ? 1 : 3) + size_t(c)] = image.at(x, y, std::min(c, image.channels - 1));
     ok = std::fwrite(row.data(), sizeof(float), row.size(), f) == row.size();
   }
-  ok = ok && std::fflush(f) == 0;
-  const int error = ok ? 0 : errno;
-  // close reports what a delayed write found (NFS, a quota).
-  const bool closed = std::fclose(f) == 0;
-  const int close_error = closed ? 0 : errno;
-  if (!ok || !closed) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    const int cause = ok ? close_error : error;
-    throw file_error(path, "write failed" + (cause ? std::string(" (") + std::strerror(cause) + ")" : std::string()));
-  }
+  finish_stdio_write(f, ok, tmp, path);
 }
 
 // OpenEXR, 32-bit float channels (Y, Y A, R G B or R G B A), zip compression.
@@ -845,17 +853,7 @@ void write_bytes_atomic(const std::string& path, const void* data, size_t size) 
   const std::string tmp = temp_name(path);
   std::FILE* f = std::fopen(tmp.c_str(), "wb");
   if (!f) throw file_error(path, std::string("cannot open for writing (") + std::strerror(errno) + ")");
-  bool ok = std::fwrite(data, 1, size, f) == size && std::fflush(f) == 0;
-  int cause = ok ? 0 : errno;
-  if (std::fclose(f) != 0 && ok) {
-    ok = false;
-    cause = errno;
-  }
-  if (!ok) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    throw file_error(path, "write failed" + (cause ? std::string(" (") + std::strerror(cause) + ")" : std::string()));
-  }
+  finish_stdio_write(f, std::fwrite(data, 1, size, f) == size, tmp, path);
   commit(tmp, path);
 }
 
