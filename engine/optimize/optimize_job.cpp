@@ -668,6 +668,7 @@ class Job {
     // What a checkpoint records of the scene: everything loaded from its file (the textures,
     // meshes and grids it refers to too), before the config's "set" (that is the config's part).
     scene_content_ = scene_->content_hash();
+    scene_bytes_ = read_input_file(c_.scene);  // once: the target keys and the checkpoint's record hash it
     apply_scene_overrides(*scene_);
     require_same_scene(*scene_);
     resolve_views();
@@ -771,6 +772,7 @@ class Job {
   bool quiet_;
   bool resume_any_scene_;
   uint64_t scene_content_ = 0;  // scene_'s content_hash() as loaded from its file
+  std::string scene_bytes_;     // the scene file, read once (target_key, made_from)
   json made_from_;              // what this run's checkpoints record they were made from (made_from())
   // --resume: the checkpoint folder, its state.json as read by check_made_from (load_checkpoint
   // reads the rest), and the note on what it was made from (empty when nothing differs).
@@ -856,8 +858,7 @@ class Job {
 
   // What a reference target of view v is rendered from, as text (hashed: the scene file's bytes).
   std::string target_key(size_t v, const Camera& cam) const {
-    const std::string bytes = scene_file_bytes();
-    std::string key = "scene " + std::to_string(std::hash<std::string>{}(bytes)) + "\n";
+    std::string key = "scene " + std::to_string(std::hash<std::string>{}(scene_bytes_)) + "\n";
     for (const auto& o : c_.scene_overrides) key += "set " + o + "\n";
     for (const auto& o : c_.reference_overrides) key += "reference " + o + "\n";
     // What the files behind those names hold (a texture or grid file rewritten in place kept its
@@ -866,11 +867,6 @@ class Job {
     key += "spp " + std::to_string(c_.reference_spp) + " seed " + std::to_string(0xabcdefull + v) + " camera " +
            cam.name + " " + std::to_string(cam.width) + "x" + std::to_string(cam.height) + "\n";
     return key;
-  }
-
-  std::string scene_file_bytes() const {
-    std::ifstream in(c_.scene, std::ios::binary);
-    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   }
 
   // The targets' inputs, read before anything is written: the target files (size-checked) and
@@ -932,11 +928,10 @@ class Job {
     std::error_code ec;
     fs::path file = fs::weakly_canonical(fs::absolute(c_.scene), ec);
     if (ec) file = fs::absolute(c_.scene).lexically_normal();
-    const std::string bytes = scene_file_bytes();
     return {{"config", config},
             {"scene",
              {{"file", file.string()},
-              {"bytes", hex64(fnv1a(bytes.data(), bytes.size()))},
+              {"bytes", hex64(fnv1a(scene_bytes_.data(), scene_bytes_.size()))},
               {"content", hex64(scene_content_)}}},
             {"targets", target_prints_}};
   }
